@@ -1,0 +1,28 @@
+"""sb3-gocu: goal-based curiosity (GoCu) for Stable-Baselines3.
+
+``from sb3_gocu import PPO_GoCu, GoCuVecEnvWrapper, GoCuWrapper, GoCuCallback, GoalCuriosityModule``.
+Importing the package also registers the ``GoCu/...`` environment ids.
+"""
+
+from sb3_gocu.callbacks import GoCuCallback
+from sb3_gocu.curiosity import GoalCuriosityModule
+from sb3_gocu.envs import register_envs
+from sb3_gocu.policies import PaperCNN
+from sb3_gocu.ppo_gocu import PPO_GoCu
+from sb3_gocu.wrappers import GoCuVecEnvWrapper, GoCuWrapper, find_gocu_module
+
+__version__ = "0.1.0"
+
+register_envs()
+
+__all__ = [
+    "GoCuCallback",
+    "GoCuVecEnvWrapper",
+    "GoCuWrapper",
+    "GoalCuriosityModule",
+    "PPO_GoCu",
+    "PaperCNN",
+    "find_gocu_module",
+    "register_envs",
+    "__version__",
+]

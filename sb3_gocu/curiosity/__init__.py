@@ -1,0 +1,36 @@
+"""The curiosity maths of GoCu on tensors alone (torch, numpy and gymnasium spaces; no Stable-Baselines3)."""
+
+from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
+from sb3_gocu.curiosity.module import GoalCuriosityModule
+from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, vae_loss
+from sb3_gocu.curiosity.observations import ObservationAdapter
+from sb3_gocu.curiosity.reward import (
+    AGGREGATIONS,
+    IntrinsicReturnNormalizer,
+    RunningMeanStd,
+    complexity_score,
+    curiosity_reward,
+    mastered_probability,
+)
+from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore
+
+__all__ = [
+    "AGGREGATIONS",
+    "GOAL_STRATEGIES",
+    "ConvVAE",
+    "FoldedPredictor",
+    "GoalBuffer",
+    "GoalCuriosityModule",
+    "IntrinsicReturnNormalizer",
+    "MasteryPredictor",
+    "MemoryBank",
+    "MlpVAE",
+    "ObservationAdapter",
+    "RunningMeanStd",
+    "TrajectoryStore",
+    "complexity_score",
+    "curiosity_reward",
+    "mastered_probability",
+    "select_goal_steps",
+    "vae_loss",
+]

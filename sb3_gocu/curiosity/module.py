@@ -1,0 +1,624 @@
+"""GoalCuriosityModule: the goal-based curiosity module (GCM) of the paper, Fig. 3, on tensors alone.
+
+One object holds everything GoCu learns and remembers: the VAE and its optimiser, the mastery predictor
+and its optimiser, the goal buffer, the memory bank, the trajectory store for training pairs, the
+intrinsic-return normaliser and the random generator that samples goals. Wrappers feed it batches of
+observations (:meth:`step`); a callback tells it when to learn (:meth:`add_finished_episode_goals`,
+:meth:`train_vae`, :meth:`train_predictor`, or :meth:`maybe_train`).
+
+The reward of a state s in an episode with goals g_1..g_K (eq 13, 14)::
+
+    m_k  = m(phi(s), phi(g_k))                  mastery predictor, eval mode
+    r_gc = (alpha - h(m_1, ..., m_K)) / delta   h = max (paper) or mean
+    r    = r_gc / std(intrinsic returns)
+
+Hot path. Between two predictor/VAE updates, the reward of a state against an episode's goals is a fixed
+function, so it is computed with the folded predictor (batch norm folded, first layer split, goal half
+cached per episode) and memoised per episode on the observation's bytes: an observation seen again in
+the same episode costs a hash. None of this changes the value computed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from collections import deque
+from typing import Any, Sequence
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
+from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, vae_loss
+from sb3_gocu.curiosity.observations import ObservationAdapter
+from sb3_gocu.curiosity.reward import (
+    AGGREGATIONS,
+    IntrinsicReturnNormalizer,
+    complexity_score,
+    curiosity_reward,
+    mastered_probability,
+)
+from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ValueError(message)
+
+
+class GoalCuriosityModule:
+    """Goal-based curiosity (GoCu) on batches of observations.
+
+    Defaults are the paper's MiniGrid settings (section 5.1.2); the paper's symbol is given for each.
+
+    :param observation_space: observation space of the (vectorised) environment
+    :param n_goals: K, goals sampled from the goal buffer at each episode start (1 <= K <= goal_buffer_size)
+    :param goal_buffer_size: capacity of the goal buffer R_g
+    :param new_goals_per_episode: l, goals drawn from each finished episode besides its final state
+    :param goal_strategy: how new goals are drawn: "random", "proportional" or "late" (section 5.1.4)
+    :param goal_novelty: novelty filter of eq 12: a candidate goal is kept only if its distance to the nearest
+        goal exceeds ``goal_novelty`` times the buffer's median nearest-neighbour distance (0: refuse only
+        exact duplicates)
+    :param alpha: alpha of eq 13
+    :param aggregation: h of eq 13, "max" or "mean"
+    :param reward_scale: delta of eq 13 (> 0)
+    :param intrinsic_gamma: discount of the intrinsic returns, for the normalisation of eq 14 and (in
+        PPO_GoCu) the GAE of the intrinsic stream
+    :param prior_weight: lambda of eq 15
+    :param distance_weight: beta of eq 15
+    :param label_threshold: a of eq 16 (> 0)
+    :param label_slope: b of eq 16 (> 0)
+    :param max_distance: d_max, the largest step gap y of a training pair (s_t, s_{t+y}) (>= 1)
+    :param soft_labels: train the predictor on p_skill of eq 16 as a soft target (True) or on labels drawn
+        from Bernoulli(p_skill) (False)
+    :param predictor_hidden: hidden layer sizes of the predictor
+    :param predictor_lr: Adam learning rate of the predictor
+    :param predictor_batch_size: minibatch size of predictor training
+    :param predictor_epochs: epochs over the drawn pairs at each predictor update
+    :param predictor_pairs: training pairs drawn per predictor update (a bounded sample of all pairs)
+    :param predictor_train_freq: P_m, env steps between predictor updates
+    :param embed_dim: size of the embedding phi (the FC layer after the VAE encoder)
+    :param latent_dim: size of the VAE latent (mu, sigma)
+    :param vae_beta: beta of eq 8
+    :param vae_lr: Adam learning rate of the VAE
+    :param vae_batch_size: minibatch size of VAE training
+    :param vae_epochs: epochs over the memory bank at each VAE update
+    :param vae_train_freq: P_vae, env steps between VAE updates
+    :param vae_dedupe: train the VAE on the distinct observations of the memory bank, each weighted by its
+        multiplicity (same objective as the whole bank, fewer passes when observations repeat)
+    :param pretrain_steps: random-policy observations collected to pretrain the VAE before the first rollout
+    :param memory_size: capacity of the memory bank
+    :param episode_memory: most recent states of the current episode kept per env to draw goals from
+    :param obs_key: for a Dict observation space, the entry to embed
+    :param image_channels: keep only the newest ``image_channels`` channels of an image (frame stacks)
+    :param device: torch device of the networks
+    :param seed: seed of the module's random generators
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        n_goals: int = 50,
+        goal_buffer_size: int = 1500,
+        new_goals_per_episode: int = 7,
+        goal_strategy: str = "proportional",
+        goal_novelty: float = 0.25,
+        alpha: float = 1.0,
+        aggregation: str = "max",
+        reward_scale: float = 10.0,
+        intrinsic_gamma: float = 0.99,
+        prior_weight: float = 3.0,
+        distance_weight: float = 1.0,
+        label_threshold: float = 15.0,
+        label_slope: float = 0.8,
+        max_distance: int = 30,
+        soft_labels: bool = True,
+        predictor_hidden: Sequence[int] = (512, 512, 512, 512, 512),
+        predictor_lr: float = 5e-4,
+        predictor_batch_size: int = 128,
+        predictor_epochs: int = 15,
+        predictor_pairs: int = 8192,
+        predictor_train_freq: int = 20_000,
+        embed_dim: int = 128,
+        latent_dim: int = 10,
+        vae_beta: float = 1.0,
+        vae_lr: float = 1e-3,
+        vae_batch_size: int = 128,
+        vae_epochs: int = 20,
+        vae_train_freq: int = 100_000,
+        vae_dedupe: bool = True,
+        pretrain_steps: int = 10_000,
+        memory_size: int = 10_000,
+        episode_memory: int = 4096,
+        obs_key: str | None = None,
+        image_channels: int | None = None,
+        device: th.device | str = "cpu",
+        seed: int | None = None,
+    ) -> None:
+        _check(goal_buffer_size >= 1, f"goal_buffer_size must be >= 1, got {goal_buffer_size}")
+        _check(1 <= n_goals <= goal_buffer_size, f"n_goals (K) must be in [1, goal_buffer_size={goal_buffer_size}], got {n_goals}")
+        _check(new_goals_per_episode >= 0, f"new_goals_per_episode (l) must be >= 0, got {new_goals_per_episode}")
+        _check(goal_strategy in GOAL_STRATEGIES, f"goal_strategy must be one of {GOAL_STRATEGIES}, got {goal_strategy!r}")
+        _check(goal_novelty >= 0, f"goal_novelty must be >= 0, got {goal_novelty}")
+        _check(aggregation in AGGREGATIONS, f"aggregation (h) must be one of {AGGREGATIONS}, got {aggregation!r}")
+        _check(reward_scale > 0, f"reward_scale (delta) must be > 0, got {reward_scale}")
+        _check(0 <= intrinsic_gamma <= 1, f"intrinsic_gamma must be in [0, 1], got {intrinsic_gamma}")
+        _check(prior_weight >= 0, f"prior_weight (lambda) must be >= 0, got {prior_weight}")
+        _check(distance_weight >= 0, f"distance_weight (beta) must be >= 0, got {distance_weight}")
+        _check(label_threshold > 0, f"label_threshold (a) must be > 0, got {label_threshold}")
+        _check(label_slope > 0, f"label_slope (b) must be > 0, got {label_slope}")
+        _check(max_distance >= 1, f"max_distance (d_max) must be >= 1, got {max_distance}")
+        for name, value in (
+            ("predictor_batch_size", predictor_batch_size),
+            ("predictor_pairs", predictor_pairs),
+            ("predictor_train_freq", predictor_train_freq),
+            ("embed_dim", embed_dim),
+            ("latent_dim", latent_dim),
+            ("vae_batch_size", vae_batch_size),
+            ("vae_train_freq", vae_train_freq),
+            ("memory_size", memory_size),
+            ("episode_memory", episode_memory),
+        ):
+            _check(value >= 1, f"{name} must be >= 1, got {value}")
+        for name, value in (("predictor_epochs", predictor_epochs), ("vae_epochs", vae_epochs), ("pretrain_steps", pretrain_steps)):
+            _check(value >= 0, f"{name} must be >= 0, got {value}")
+        for name, value in (("predictor_lr", predictor_lr), ("vae_lr", vae_lr)):
+            _check(value > 0, f"{name} must be > 0, got {value}")
+        _check(vae_beta >= 0, f"vae_beta must be >= 0, got {vae_beta}")
+
+        self.observation_space = observation_space
+        self.adapter = ObservationAdapter(observation_space, obs_key=obs_key, image_channels=image_channels)
+        self.n_goals = n_goals
+        self.new_goals_per_episode = new_goals_per_episode
+        self.goal_strategy = goal_strategy
+        self.alpha = alpha
+        self.aggregation = aggregation
+        self.reward_scale = reward_scale
+        self.intrinsic_gamma = intrinsic_gamma
+        self.prior_weight = prior_weight
+        self.distance_weight = distance_weight
+        self.label_threshold = label_threshold
+        self.label_slope = label_slope
+        self.max_distance = max_distance
+        self.soft_labels = soft_labels
+        self.predictor_batch_size = predictor_batch_size
+        self.predictor_epochs = predictor_epochs
+        self.predictor_pairs = predictor_pairs
+        self.predictor_train_freq = predictor_train_freq
+        self.vae_beta = vae_beta
+        self.vae_batch_size = vae_batch_size
+        self.vae_epochs = vae_epochs
+        self.vae_train_freq = vae_train_freq
+        self.vae_dedupe = vae_dedupe
+        self.pretrain_steps = pretrain_steps
+        self.episode_memory = episode_memory
+        self.device = th.device(device)
+
+        self.rng = np.random.default_rng(seed)
+        self._torch_gen = th.Generator().manual_seed(int(self.rng.integers(2**62)))
+        vae_cls = ConvVAE if self.adapter.is_image else MlpVAE
+        self.vae = vae_cls(self.adapter.input_shape, embed_dim=embed_dim, latent_dim=latent_dim).to(self.device)
+        self.vae_optimizer = th.optim.Adam(self.vae.parameters(), lr=vae_lr)
+        self.predictor = MasteryPredictor(embed_dim, predictor_hidden).to(self.device)
+        self.predictor_optimizer = th.optim.Adam(self.predictor.parameters(), lr=predictor_lr)
+        self.vae.eval()
+        self.predictor.eval()
+
+        raw_shape, raw_dtype = self.adapter.raw_shape, self.adapter.raw_dtype
+        self.goal_buffer = GoalBuffer(goal_buffer_size, raw_shape, raw_dtype, embed_dim, goal_novelty)
+        self.memory = MemoryBank(memory_size, raw_shape, raw_dtype)
+        self.trajectories = TrajectoryStore(predictor_train_freq, embed_dim, min_per_env=2 * max_distance)
+        self.normalizer = IntrinsicReturnNormalizer(intrinsic_gamma)
+
+        # per-env state
+        self.n_envs = 0
+        self._goal_obs = np.zeros((0, n_goals, *raw_shape), dtype=raw_dtype)
+        self._goal_valid = th.zeros(0, n_goals, dtype=th.bool)
+        self._goal_parts = th.zeros(0, n_goals, self.predictor.hidden[0].out_features)
+        self._episode_ids = np.zeros(0, dtype=np.int64)
+        self._episodes: list[deque] = []
+        self._reward_cache: list[dict] = []
+        self._next_episode_id = 0
+        self.finished_episodes: deque = deque(maxlen=1024)
+
+        #: when True, :meth:`step` records observations (memory bank, trajectory store, episodes) and updates
+        #: the normaliser; a training callback switches it on
+        self.recording = False
+        self.pretrained = False
+        self.n_recorded_steps = 0
+        self.last_vae_update = 0
+        self.last_predictor_update = 0
+        self.stats: dict[str, float] = {}
+        self._reward_sum = 0.0
+        self._reward_sq_sum = 0.0
+        self._reward_count = 0
+        self._cache_hits = 0
+        self._cache_lookups = 0
+        self.time_inference = 0.0
+        self.time_training = 0.0
+        self._folded = self.predictor.fold()
+
+    # ------------------------------------------------------------------ embedding and scoring
+    @th.inference_mode()
+    def embed(self, raw: np.ndarray, batch_size: int = 1024) -> th.Tensor:
+        """phi of a batch of raw observations (as kept in the buffers), (n, embed_dim)."""
+        if len(raw) == 0:
+            return th.zeros(0, self.goal_buffer.embeddings.shape[1])
+        out = [self.vae.embed(self.adapter.to_tensor(raw[i : i + batch_size], self.device)).cpu() for i in range(0, len(raw), batch_size)]
+        return th.cat(out)
+
+    @th.inference_mode()
+    def mastery(self, raw_states: np.ndarray, raw_goals: np.ndarray) -> th.Tensor:
+        """m(phi(s), phi(g)) for a batch of states against a batch of goals, (n_states, n_goals)."""
+        parts = self._folded.goal_part(self.embed(raw_goals))
+        phi = self.embed(raw_states)
+        return self._folded.mastery_from_parts(self._folded.state_part(phi), parts.expand(len(phi), *parts.shape))
+
+    def ensure_envs(self, n_envs: int) -> None:
+        """Grow the per-env state to ``n_envs`` environments (new envs get goals at once)."""
+        old = self.n_envs
+        if n_envs <= old:
+            return
+        extra = n_envs - old
+        self._goal_obs = np.concatenate([self._goal_obs, np.zeros((extra, *self._goal_obs.shape[1:]), dtype=self._goal_obs.dtype)])
+        self._goal_valid = th.cat([self._goal_valid, th.zeros(extra, self.n_goals, dtype=th.bool)])
+        self._goal_parts = th.cat([self._goal_parts, th.zeros(extra, *self._goal_parts.shape[1:])])
+        self._episode_ids = np.concatenate([self._episode_ids, np.arange(self._next_episode_id, self._next_episode_id + extra)])
+        self._next_episode_id += extra
+        self._episodes += [deque(maxlen=self.episode_memory) for _ in range(extra)]
+        self._reward_cache += [{} for _ in range(extra)]
+        self.trajectories.ensure_envs(n_envs)
+        self.normalizer.ensure_envs(n_envs)
+        self.n_envs = n_envs
+        self.sample_goals(np.arange(old, n_envs))
+
+    def begin_episodes(self, env_indices: np.ndarray) -> None:
+        """Start new episodes in ``env_indices``: a finished episode (while recording) is queued for goal
+        selection, and the new episode gets a fresh id and K fresh goals."""
+        for e in np.asarray(env_indices, dtype=np.int64):
+            if self.recording and len(self._episodes[e]):
+                self.finished_episodes.append(np.stack(self._episodes[e]))
+            self._episodes[e].clear()
+            self._episode_ids[e] = self._next_episode_id
+            self._next_episode_id += 1
+        self.sample_goals(env_indices)
+
+    def register_env(self) -> int:
+        """Add one env (for per-env wrappers sharing this module) and return its index."""
+        self.ensure_envs(self.n_envs + 1)
+        return self.n_envs - 1
+
+    @th.inference_mode()
+    def sample_goals(self, env_indices: np.ndarray) -> None:
+        """Draw K goals from the goal buffer for a new episode of each env in ``env_indices`` (eq 11)."""
+        env_indices = np.asarray(env_indices, dtype=np.int64)
+        if len(env_indices) == 0:
+            return
+        idx = self.goal_buffer.sample(len(env_indices), self.n_goals, self.rng)
+        t_env = th.from_numpy(env_indices)
+        for e in env_indices:
+            self._reward_cache[e].clear()
+        if idx.shape[1] == 0:
+            self._goal_valid[t_env] = False
+            return
+        self._goal_obs[env_indices] = self.goal_buffer.observations[idx]
+        self._goal_parts[t_env] = self._folded.goal_part(self.goal_buffer.embeddings[th.from_numpy(idx)])
+        self._goal_valid[t_env] = True
+
+    @th.inference_mode()
+    def _refresh_active_goals(self) -> None:
+        """Recompute the goal halves of the active goals after the predictor or the VAE changed."""
+        for e in range(self.n_envs):
+            self._reward_cache[e].clear()
+            if bool(self._goal_valid[e, 0]):
+                self._goal_parts[e] = self._folded.goal_part(self.embed(self._goal_obs[e]))
+
+    @staticmethod
+    def _key(x: np.ndarray) -> bytes:
+        return hashlib.blake2b(np.ascontiguousarray(x).data, digest_size=16).digest()
+
+    @th.inference_mode()
+    def _score(self, raw: np.ndarray, env_indices: np.ndarray) -> tuple[np.ndarray, th.Tensor]:
+        """Raw r_gc and phi of one observation per env, memoised per episode."""
+        n = len(raw)
+        rewards = np.empty(n, dtype=np.float32)
+        phi = th.empty(n, self.goal_buffer.embeddings.shape[1])
+        keys = [self._key(x) for x in raw]
+        miss = []
+        for j, (e, key) in enumerate(zip(env_indices, keys)):
+            hit = self._reward_cache[e].get(key)
+            if hit is None:
+                miss.append(j)
+            else:
+                rewards[j], phi[j] = hit
+        self._cache_lookups += n
+        self._cache_hits += n - len(miss)
+        if miss:
+            m_idx = np.asarray(miss)
+            envs = th.from_numpy(env_indices[m_idx])
+            phi_m = self.vae.embed(self.adapter.to_tensor(raw[m_idx], self.device)).cpu()
+            mastery = self._folded.mastery_from_parts(self._folded.state_part(phi_m), self._goal_parts[envs])
+            r = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale, valid=self._goal_valid[envs])
+            r_np = r.numpy()
+            rewards[m_idx] = r_np
+            phi[th.from_numpy(m_idx)] = phi_m
+            for j, rj, pj in zip(miss, r_np, phi_m):
+                cache = self._reward_cache[env_indices[j]]
+                if len(cache) >= self.episode_memory:
+                    cache.clear()
+                cache[keys[j]] = (rj, pj)
+        return rewards, phi
+
+    # ------------------------------------------------------------------ the step
+    def step(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Curiosity reward of the states just reached, one per env.
+
+        :param observations: batch of observations s_{t+1} (for an env whose episode just ended: its terminal
+            observation, not the reset one)
+        :param dones: whether each env's episode ended with this observation; such envs get new goals
+        :param env_indices: which envs the rows belong to (default: 0..n-1)
+        :return: raw r_gc (eq 13) and normalised r_gc (eq 14), float32 arrays of shape (n,)
+        """
+        t0 = time.perf_counter()
+        raw = self.adapter.extract(observations)
+        n = len(raw)
+        env_indices = np.arange(n) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
+        self.ensure_envs(int(env_indices.max()) + 1)
+        dones = np.asarray(dones, dtype=bool)
+        rewards, phi = self._score(raw, env_indices)
+        if not np.all(np.isfinite(rewards)):
+            # a broken network must not poison the policy's buffer: no bonus for these states
+            self.stats["nonfinite_rewards"] = self.stats.get("nonfinite_rewards", 0) + int((~np.isfinite(rewards)).sum())
+            rewards = np.where(np.isfinite(rewards), rewards, 0.0).astype(np.float32)
+        normalized = self.normalizer(rewards, env_indices, update=self.recording)
+        if self.recording:
+            self.memory.add(raw, self.rng)
+            self.trajectories.add(phi, self._episode_ids[env_indices], env_indices)
+            for j, e in enumerate(env_indices):
+                self._episodes[e].append(raw[j].copy())
+            self.n_recorded_steps += n
+            self._reward_sum += float(rewards.sum())
+            self._reward_sq_sum += float((rewards.astype(np.float64) ** 2).sum())
+            self._reward_count += n
+        self.begin_episodes(env_indices[dones])
+        self.time_inference += time.perf_counter() - t0
+        return rewards, normalized
+
+    # ------------------------------------------------------------------ learning
+    def add_finished_episode_goals(self) -> int:
+        """Add goals from every episode finished since the last call (final state + l by the strategy).
+
+        :return: number of goals added (after the novelty filter)
+        """
+        added = 0
+        while self.finished_episodes:
+            episode = self.finished_episodes.popleft()
+            steps = select_goal_steps(len(episode), self.new_goals_per_episode, self.goal_strategy, self.rng)
+            candidates = episode[steps]
+            added += self.goal_buffer.add(candidates, self.embed(candidates), self.rng)
+        return added
+
+    def train_vae(self, epochs: int | None = None) -> dict[str, float]:
+        """Train the VAE on the memory bank (eq 8), then re-embed goals and drop stale embeddings.
+
+        :param epochs: passes over the memory bank (default ``vae_epochs``)
+        :return: statistics of the update
+        """
+        t0 = time.perf_counter()
+        epochs = self.vae_epochs if epochs is None else epochs
+        data = self.memory.observations[: self.memory.size]
+        if len(data) == 0 or epochs == 0:
+            return {}
+        weights = np.ones(len(data), dtype=np.float32)
+        if self.vae_dedupe:
+            flat = data.reshape(len(data), -1)
+            _, first, counts = np.unique(flat, axis=0, return_index=True, return_counts=True)
+            data = data[first]
+            weights = (counts * len(counts) / counts.sum()).astype(np.float32)
+        self.vae.train()
+        losses, skipped = [], 0
+        n = len(data)
+        for _ in range(epochs):
+            order = th.randperm(n, generator=self._torch_gen).numpy()
+            for start in range(0, n, self.vae_batch_size):
+                idx = order[start : start + self.vae_batch_size]
+                x = self.adapter.to_tensor(data[idx], self.device)
+                w = th.from_numpy(weights[idx]).to(self.device)
+                loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w)
+                if not th.isfinite(loss):
+                    skipped += 1
+                    continue
+                self.vae_optimizer.zero_grad()
+                loss.backward()
+                self.vae_optimizer.step()
+                losses.append(loss.item())
+        self.vae.eval()
+        self.goal_buffer.refresh(self.embed)
+        self.trajectories.clear()  # stored embeddings belong to the old encoder
+        self._refresh_active_goals()
+        self.last_vae_update = self.n_recorded_steps
+        dt = time.perf_counter() - t0
+        self.time_training += dt
+        out = {
+            "vae_loss": float(np.mean(losses)) if losses else float("nan"),
+            "vae_distinct_observations": float(n),
+            "vae_skipped_updates": float(skipped),
+            "vae_time": dt,
+        }
+        self.stats.update(out)
+        return out
+
+    def pretrain(self) -> dict[str, float]:
+        """Train the VAE on what the memory bank holds (the random-policy observations) and mark the module
+        pretrained."""
+        out = self.train_vae()
+        self.pretrained = True
+        self.last_predictor_update = self.n_recorded_steps  # P_m counts from the first rollout
+        return out
+
+    def train_predictor(self) -> dict[str, float]:
+        """Draw pairs (s_t, s_{t+y}), label them with eq 15-16 and train the predictor.
+
+        :return: statistics of the update (loss, accuracy against the labels, fraction labelled mastered)
+        """
+        t0 = time.perf_counter()
+        phi_s, phi_g, dist = self.trajectories.sample_pairs(self.predictor_pairs, self.max_distance, self.rng)
+        self.last_predictor_update = self.n_recorded_steps
+        if len(phi_s) < 2:
+            return {}
+        phi_s, phi_g, dist = phi_s.to(self.device), phi_g.to(self.device), dist.to(self.device)
+        with th.no_grad():
+            prior = 1.0 - self.predictor.mastery(phi_s, phi_g)  # decision 1: belief that the skill is not mastered
+            p_skill = mastered_probability(
+                complexity_score(prior, dist, self.prior_weight, self.distance_weight), self.label_threshold, self.label_slope
+            )
+            target = p_skill if self.soft_labels else th.bernoulli(p_skill, generator=self._torch_gen)
+        self.predictor.train()
+        n = len(phi_s)
+        losses, accs, skipped = [], [], 0
+        for _ in range(self.predictor_epochs):
+            order = th.randperm(n, generator=self._torch_gen)
+            for start in range(0, n, self.predictor_batch_size):
+                idx = order[start : start + self.predictor_batch_size]
+                if len(idx) < 2:  # batch norm needs two samples
+                    continue
+                logp = th.log_softmax(self.predictor(phi_s[idx], phi_g[idx]), dim=-1)
+                t = target[idx]
+                loss = -(t * logp[:, 1] + (1 - t) * logp[:, 0]).mean()
+                if not th.isfinite(loss):
+                    skipped += 1
+                    continue
+                self.predictor_optimizer.zero_grad()
+                loss.backward()
+                self.predictor_optimizer.step()
+                losses.append(loss.item())
+                accs.append(((logp[:, 1] > logp[:, 0]) == (t > 0.5)).float().mean().item())
+        self.predictor.eval()
+        self._folded = self.predictor.fold()
+        self._refresh_active_goals()
+        dt = time.perf_counter() - t0
+        self.time_training += dt
+        out = {
+            "predictor_loss": float(np.mean(losses)) if losses else float("nan"),
+            "predictor_accuracy": float(np.mean(accs)) if accs else float("nan"),
+            "mastered_fraction": float((p_skill > 0.5).float().mean()),
+            "predictor_pairs": float(n),
+            "predictor_skipped_updates": float(skipped),
+            "predictor_time": dt,
+        }
+        self.stats.update(out)
+        return out
+
+    def maybe_train(self) -> dict[str, float]:
+        """Add goals from finished episodes, and retrain the VAE every ``vae_train_freq`` and the predictor
+        every ``predictor_train_freq`` recorded steps. Call it between rollouts."""
+        out: dict[str, float] = {"goals_added": float(self.add_finished_episode_goals())}
+        if self.n_recorded_steps - self.last_vae_update >= self.vae_train_freq:
+            out.update(self.train_vae())
+        if self.n_recorded_steps - self.last_predictor_update >= self.predictor_train_freq:
+            out.update(self.train_predictor())
+        return out
+
+    def pop_reward_stats(self) -> dict[str, float]:
+        """Mean and std of the raw r_gc recorded since the last call, and the other running figures."""
+        out = {
+            "goal_buffer_size": float(self.goal_buffer.size),
+            "memory_size": float(self.memory.size),
+            "return_std": self.normalizer.std,
+            "cache_hit_rate": self._cache_hits / max(1, self._cache_lookups),
+            "time_inference": self.time_inference,
+            "time_training": self.time_training,
+        }
+        if self._reward_count:
+            mean = self._reward_sum / self._reward_count
+            out["reward_mean"] = mean
+            out["reward_std"] = math.sqrt(max(0.0, self._reward_sq_sum / self._reward_count - mean**2))
+        self._reward_sum = self._reward_sq_sum = 0.0
+        self._reward_count = self._cache_hits = self._cache_lookups = 0
+        return out
+
+    # ------------------------------------------------------------------ persistence
+    def state_dict(self) -> dict[str, Any]:
+        """Everything the module learned and remembers, as tensors and plain Python values (loadable with
+        ``torch.load(..., weights_only=True)``)."""
+        return {
+            "vae": self.vae.state_dict(),
+            "vae_optimizer": self.vae_optimizer.state_dict(),
+            "predictor": self.predictor.state_dict(),
+            "predictor_optimizer": self.predictor_optimizer.state_dict(),
+            "goal_buffer": self.goal_buffer.state_dict(),
+            "memory": self.memory.state_dict(),
+            "trajectories": self.trajectories.state_dict(),
+            "normalizer": self.normalizer.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "torch_rng": self._torch_gen.get_state(),
+            "envs": {
+                "goal_obs": th.from_numpy(self._goal_obs.copy()),
+                "goal_valid": self._goal_valid.clone(),
+                "episode_ids": th.from_numpy(self._episode_ids.copy()),
+                "episodes": [th.from_numpy(np.stack(ep)) if len(ep) else th.zeros(0) for ep in self._episodes],
+                "finished_episodes": [th.from_numpy(ep) for ep in self.finished_episodes],
+                "next_episode_id": self._next_episode_id,
+            },
+            "counters": {
+                "pretrained": self.pretrained,
+                "n_recorded_steps": self.n_recorded_steps,
+                "last_vae_update": self.last_vae_update,
+                "last_predictor_update": self.last_predictor_update,
+            },
+        }
+
+    def load_state_dict(self, state: dict[str, Any], strict: bool = True) -> None:
+        """Restore a :meth:`state_dict` (``strict`` is accepted for SB3's ``set_parameters``)."""
+        missing = {"vae", "predictor", "goal_buffer", "memory", "normalizer", "counters"} - set(state)
+        if missing:
+            raise ValueError(f"curiosity state is missing {sorted(missing)}: not a GoalCuriosityModule state_dict")
+        self.vae.load_state_dict(state["vae"], strict=strict)
+        self.predictor.load_state_dict(state["predictor"], strict=strict)
+        if "vae_optimizer" in state:
+            self.vae_optimizer.load_state_dict(state["vae_optimizer"])
+        if "predictor_optimizer" in state:
+            self.predictor_optimizer.load_state_dict(state["predictor_optimizer"])
+        self.vae.eval()
+        self.predictor.eval()
+        self.goal_buffer.load_state_dict(state["goal_buffer"])
+        self.memory.load_state_dict(state["memory"])
+        self.normalizer.load_state_dict(state["normalizer"])
+        if "rng" in state:
+            self.rng.bit_generator.state = state["rng"]
+        if "torch_rng" in state:
+            self._torch_gen.set_state(state["torch_rng"])
+        c = state["counters"]
+        self.pretrained = bool(c["pretrained"])
+        self.n_recorded_steps = int(c["n_recorded_steps"])
+        self.last_vae_update = int(c["last_vae_update"])
+        self.last_predictor_update = int(c["last_predictor_update"])
+        self._folded = self.predictor.fold()
+        envs = state.get("envs")
+        if envs is not None:
+            n = int(envs["episode_ids"].shape[0])
+            self.n_envs = 0
+            self._goal_obs = self._goal_obs[:0]
+            self._goal_valid = self._goal_valid[:0]
+            self._goal_parts = self._goal_parts[:0]
+            self._episode_ids = self._episode_ids[:0]
+            self._episodes, self._reward_cache = [], []
+            self.trajectories = TrajectoryStore(self.trajectories.total_capacity, self.trajectories.embed_dim, self.trajectories.min_per_env)
+            self.normalizer.returns = self.normalizer.returns[:0]
+            rng_state = self.rng.bit_generator.state
+            self.ensure_envs(n)  # allocates; the goals it draws are overwritten below
+            self.rng.bit_generator.state = rng_state
+            self.normalizer.load_state_dict(state["normalizer"])
+            self._goal_obs[:] = envs["goal_obs"].numpy()
+            self._goal_valid[:] = envs["goal_valid"]
+            self._episode_ids[:] = envs["episode_ids"].numpy()
+            self._next_episode_id = int(envs["next_episode_id"])
+            for e, ep in enumerate(envs["episodes"]):
+                if ep.ndim > 1:
+                    self._episodes[e].extend(ep.numpy())
+            self.finished_episodes.clear()
+            self.finished_episodes.extend(ep.numpy() for ep in envs["finished_episodes"])
+            self.trajectories.load_state_dict(state["trajectories"])
+            self._refresh_active_goals()

@@ -1,0 +1,133 @@
+"""How GoCu reads an observation space: which entry it embeds, and how a batch becomes a float tensor.
+
+No Stable-Baselines3 import: this file only knows gymnasium spaces, numpy and torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+SUPPORTED_SPACES = (
+    "Box images (H, W), (H, W, C) or (C, H, W) with C in {1, 3, 4} (uint8 or float), "
+    "1-D Box vectors, or a Dict holding at least one such image or vector entry"
+)
+
+
+def _image_layout(box: spaces.Box) -> str | None:
+    """Return "hwc", "chw", "hw" for an image-like Box, or None for a vector."""
+    shape = box.shape
+    if len(shape) == 2:
+        return "hw"
+    if len(shape) == 3:
+        if shape[-1] in (1, 3, 4) or (shape[-1] <= 16 and shape[0] > 16):
+            return "hwc"
+        if shape[0] in (1, 3, 4) or (shape[0] <= 16 and shape[-1] > 16):
+            return "chw"
+    return None
+
+
+@dataclass
+class ObservationAdapter:
+    """Turns raw observations of one space into what the VAE embeds.
+
+    :param observation_space: the environment's observation space
+    :param obs_key: for a ``Dict`` space, the entry to embed (default: the first image entry, else the
+        first vector entry)
+    :param image_channels: keep only the last ``image_channels`` channels of an image (the newest frame
+        of a frame stack, e.g. 1 for Atari's 4 stacked grey frames); ``None`` keeps all channels
+    """
+
+    observation_space: spaces.Space
+    obs_key: str | None = None
+    image_channels: int | None = None
+
+    def __post_init__(self) -> None:
+        space = self.observation_space
+        if isinstance(space, spaces.Dict):
+            if self.obs_key is None:
+                boxes = {k: s for k, s in space.spaces.items() if isinstance(s, spaces.Box)}
+                images = [k for k, s in boxes.items() if _image_layout(s) is not None]
+                vectors = [k for k, s in boxes.items() if len(s.shape) == 1]
+                if images:
+                    self.obs_key = images[0]
+                elif vectors:
+                    self.obs_key = vectors[0]
+                else:
+                    raise ValueError(
+                        f"observation_space: GoCu cannot embed {space}: the Dict has no image or vector entry. "
+                        f"Supported: {SUPPORTED_SPACES}."
+                    )
+            elif self.obs_key not in space.spaces:
+                raise ValueError(f"obs_key={self.obs_key!r} is not an entry of the Dict space (entries: {list(space.spaces)})")
+            box = space.spaces[self.obs_key]
+        else:
+            if self.obs_key is not None:
+                raise ValueError("obs_key is only valid for a Dict observation space")
+            box = space
+        if not isinstance(box, spaces.Box):
+            raise ValueError(f"observation_space: GoCu cannot embed {box}. Supported: {SUPPORTED_SPACES}.")
+        self.box = box
+        layout = _image_layout(box)
+        if layout is None and len(box.shape) != 1:
+            raise ValueError(f"observation_space: GoCu cannot embed a Box of shape {box.shape}. Supported: {SUPPORTED_SPACES}.")
+        self.layout = layout or "vector"
+        self.is_image = layout is not None
+        if self.is_image:
+            if layout == "hw":
+                c, h, w = 1, box.shape[0], box.shape[1]
+            elif layout == "hwc":
+                h, w, c = box.shape
+            else:
+                c, h, w = box.shape
+            if self.image_channels is not None:
+                if not 1 <= self.image_channels <= c:
+                    raise ValueError(f"image_channels must be in [1, {c}] for this space, got {self.image_channels}")
+                c = self.image_channels
+            self.input_shape: tuple[int, ...] = (c, h, w)
+        else:
+            if self.image_channels is not None:
+                raise ValueError("image_channels is only valid for image observations")
+            self.input_shape = (int(box.shape[0]),)
+        # The stored raw form keeps the space's dtype (uint8 images stay uint8).
+        self.raw_dtype = box.dtype
+        self.raw_shape = self._raw_shape()
+        if box.dtype == np.uint8:
+            self.scale = 255.0
+        else:
+            high = np.asarray(box.high, dtype=np.float64)
+            finite_high = high[np.isfinite(high)]
+            self.scale = float(finite_high.max()) if self.is_image and finite_high.size and finite_high.max() > 1 else 1.0
+
+    def _raw_shape(self) -> tuple[int, ...]:
+        if not self.is_image or self.image_channels is None:
+            return tuple(self.box.shape)
+        if self.layout == "hwc":
+            return (*self.box.shape[:2], self.image_channels)
+        return (self.image_channels, *self.box.shape[1:])
+
+    def extract(self, obs: Any) -> np.ndarray:
+        """The raw batch GoCu keeps (memory bank, goals): the embedded entry, newest channels only."""
+        x = obs[self.obs_key] if self.obs_key is not None else obs
+        x = np.asarray(x)
+        if self.is_image and self.image_channels is not None:
+            x = x[..., -self.image_channels :] if self.layout == "hwc" else x[:, -self.image_channels :]
+        return x
+
+    def to_tensor(self, raw: np.ndarray | th.Tensor, device: th.device | str = "cpu") -> th.Tensor:
+        """A raw batch (as returned by :meth:`extract`) as a float tensor (n, C, H, W) or (n, D)."""
+        x = th.as_tensor(raw, device=device)
+        if self.is_image:
+            if self.layout == "hw":
+                x = x.unsqueeze(1)
+            elif self.layout == "hwc":
+                x = x.permute(0, 3, 1, 2)
+            x = x.float()
+            if self.scale != 1.0:
+                x = x / self.scale
+            return x.contiguous()
+        return x.float().reshape(x.shape[0], -1)

@@ -1,0 +1,113 @@
+"""The formulas of GoCu as plain tensor functions: the curiosity reward (eq 13), its normalisation by the
+running std of intrinsic returns (eq 14), the complexity score (eq 15) and the label probability (eq 16).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch as th
+
+AGGREGATIONS = ("max", "mean")
+
+
+def curiosity_reward(
+    mastery: th.Tensor, alpha: float = 1.0, aggregation: str = "max", scale: float = 10.0, valid: th.Tensor | None = None
+) -> th.Tensor:
+    """Eq 13: ``r_gc = (alpha - h(m_1, ..., m_K)) / delta``.
+
+    :param mastery: (n, K) probabilities that each of the K goals is mastered from each state; with
+        K = 0 (no goal yet) h is taken as 0, so r_gc = alpha / delta
+    :param alpha: alpha, the value of the uniform vector (sign and offset of the reward)
+    :param aggregation: h, ``"max"`` or ``"mean"``
+    :param scale: delta, the divisor
+    :param valid: optional (n, K) mask of the goals that exist; a row without any valid goal has h = 0
+    :return: (n,)
+    """
+    if valid is not None:
+        count = valid.sum(dim=1)
+        if aggregation == "max":
+            h = th.where(valid, mastery, th.zeros_like(mastery)).max(dim=1).values if mastery.shape[1] else mastery.new_zeros(len(mastery))
+        elif aggregation == "mean":
+            h = th.where(valid, mastery, th.zeros_like(mastery)).sum(dim=1) / count.clamp(min=1)
+        else:
+            raise ValueError(f"aggregation must be one of {AGGREGATIONS}, got {aggregation!r}")
+        return (alpha - h) / scale
+    if mastery.shape[1] == 0:
+        h = mastery.new_zeros(mastery.shape[0])
+    elif aggregation == "max":
+        h = mastery.max(dim=1).values
+    elif aggregation == "mean":
+        h = mastery.mean(dim=1)
+    else:
+        raise ValueError(f"aggregation must be one of {AGGREGATIONS}, got {aggregation!r}")
+    return (alpha - h) / scale
+
+
+def complexity_score(prior: th.Tensor, distance: th.Tensor, prior_weight: float, distance_weight: float) -> th.Tensor:
+    """Eq 15: ``sc(s, g) = lambda * prior(s, g) + beta * dist(s, g)``.
+
+    ``prior`` is the predictor's current belief that the skill is *not* mastered, ``1 - m(phi(s), phi(g))``,
+    and ``dist`` the number of steps between s and g in the trajectory.
+    """
+    return prior_weight * prior + distance_weight * distance
+
+
+def mastered_probability(score: th.Tensor, threshold: float, slope: float) -> th.Tensor:
+    """Eq 16: ``p_skill = 1 - 1 / (1 + exp(-b (sc - a)))``, the probability that (s, g) is labelled mastered."""
+    return 1.0 - th.sigmoid(slope * (score - threshold))
+
+
+class RunningMeanStd:
+    """Running mean and variance of a stream of batches (parallel algorithm of Chan et al.)."""
+
+    def __init__(self, epsilon: float = 1e-4) -> None:
+        self.mean = 0.0
+        self.var = 1.0
+        self.count = epsilon
+
+    def update(self, x: np.ndarray) -> None:
+        batch_mean, batch_var, batch_count = float(np.mean(x)), float(np.var(x)), x.size
+        delta = batch_mean - self.mean
+        total = self.count + batch_count
+        self.mean += delta * batch_count / total
+        m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total
+        self.var = m2 / total
+        self.count = total
+
+
+class IntrinsicReturnNormalizer:
+    """Eq 14: divides r_gc by the running standard deviation of the discounted intrinsic returns.
+
+    Each env keeps a discounted sum of its intrinsic rewards (not reset at episode ends, as in RND); the
+    running variance of these returns is updated with every step before the reward is divided.
+
+    :param gamma: discount of the intrinsic returns
+    :param epsilon: added to the variance
+    """
+
+    def __init__(self, gamma: float = 0.99, epsilon: float = 1e-8) -> None:
+        self.gamma = gamma
+        self.epsilon = epsilon
+        self.returns = np.zeros(0, dtype=np.float64)
+        self.rms = RunningMeanStd()
+
+    def ensure_envs(self, n_envs: int) -> None:
+        if n_envs > len(self.returns):
+            self.returns = np.concatenate([self.returns, np.zeros(n_envs - len(self.returns))])
+
+    @property
+    def std(self) -> float:
+        return float(np.sqrt(self.rms.var + self.epsilon))
+
+    def __call__(self, rewards: np.ndarray, env_indices: np.ndarray, update: bool = True) -> np.ndarray:
+        if update:
+            self.returns[env_indices] = self.returns[env_indices] * self.gamma + rewards
+            self.rms.update(self.returns[env_indices])
+        return (rewards / self.std).astype(np.float32)
+
+    def state_dict(self) -> dict:
+        return {"returns": th.from_numpy(self.returns.copy()), "mean": self.rms.mean, "var": self.rms.var, "count": self.rms.count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.returns = state["returns"].numpy().astype(np.float64)
+        self.rms.mean, self.rms.var, self.rms.count = float(state["mean"]), float(state["var"]), float(state["count"])

@@ -1,0 +1,139 @@
+"""Bounded stores of experience: the memory bank the VAE trains on, and the trajectory store the predictor's
+training pairs (s_t, s_{t+y}) are drawn from (section 4.2.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch as th
+
+
+class MemoryBank:
+    """Observations for VAE training; when full, a random element is replaced (section 4.2.3).
+
+    :param capacity: maximum number of observations (>= 1)
+    :param obs_shape: raw observation shape
+    :param obs_dtype: raw observation dtype
+    """
+
+    def __init__(self, capacity: int, obs_shape: tuple[int, ...], obs_dtype: np.dtype) -> None:
+        if capacity < 1:
+            raise ValueError(f"memory_size must be >= 1, got {capacity}")
+        self.capacity = capacity
+        self.observations = np.zeros((capacity, *obs_shape), dtype=obs_dtype)
+        self.size = 0
+
+    def add(self, observations: np.ndarray, rng: np.random.Generator) -> None:
+        n_free = min(self.capacity - self.size, len(observations))
+        if n_free > 0:
+            self.observations[self.size : self.size + n_free] = observations[:n_free]
+            self.size += n_free
+        rest = observations[n_free:]
+        if len(rest):
+            self.observations[rng.integers(self.capacity, size=len(rest))] = rest
+
+    def state_dict(self) -> dict:
+        return {"observations": th.from_numpy(self.observations[: self.size].copy())}
+
+    def load_state_dict(self, state: dict) -> None:
+        n = int(state["observations"].shape[0])
+        if n > self.capacity:
+            raise ValueError(f"saved memory bank holds {n} observations, more than memory_size={self.capacity}")
+        self.size = n
+        self.observations[:n] = state["observations"].numpy()
+
+
+class TrajectoryStore:
+    """The most recent embedded states of each env, with episode ids, to draw training pairs from.
+
+    The per-env ring length is fixed when envs are first added: ``max(ceil(total_capacity / n_envs),
+    min_per_env)``, so the store holds about ``total_capacity`` states whatever the number of envs.
+
+    :param total_capacity: states kept over all envs
+    :param embed_dim: size of phi
+    :param min_per_env: smallest ring length per env
+    """
+
+    def __init__(self, total_capacity: int, embed_dim: int, min_per_env: int = 1) -> None:
+        self.total_capacity = total_capacity
+        self.min_per_env = min_per_env
+        self.capacity = 0
+        self.embed_dim = embed_dim
+        self.embeddings = th.zeros(0, 0, embed_dim)
+        self.episode_ids = np.zeros((0, 0), dtype=np.int64)
+        self.count = np.zeros(0, dtype=np.int64)  # states written per env, ever (ring position = count % capacity)
+
+    @property
+    def n_envs(self) -> int:
+        return len(self.count)
+
+    def ensure_envs(self, n_envs: int) -> None:
+        extra = n_envs - self.n_envs
+        if self.capacity == 0 and extra > 0:
+            self.capacity = max(-(-self.total_capacity // n_envs), self.min_per_env)
+            self.embeddings = th.zeros(self.capacity, 0, self.embed_dim)
+            self.episode_ids = np.zeros((self.capacity, 0), dtype=np.int64)
+        if extra > 0:
+            self.embeddings = th.cat([self.embeddings, th.zeros(self.capacity, extra, self.embed_dim)], dim=1)
+            self.episode_ids = np.concatenate([self.episode_ids, np.full((self.capacity, extra), -1)], axis=1)
+            self.count = np.concatenate([self.count, np.zeros(extra, dtype=np.int64)])
+
+    def add(self, embeddings: th.Tensor, episode_ids: np.ndarray, env_indices: np.ndarray) -> None:
+        pos = self.count[env_indices] % self.capacity
+        self.embeddings[pos, env_indices] = embeddings
+        self.episode_ids[pos, env_indices] = episode_ids
+        self.count[env_indices] += 1
+
+    def clear(self) -> None:
+        self.episode_ids[:] = -1
+        self.count[:] = 0
+
+    def __len__(self) -> int:
+        return int(np.minimum(self.count, self.capacity).sum())
+
+    def state_dict(self) -> dict:
+        return {
+            "embeddings": self.embeddings.clone(),
+            "episode_ids": th.from_numpy(self.episode_ids.copy()),
+            "count": th.from_numpy(self.count.copy()),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.embeddings = state["embeddings"].clone()
+        self.episode_ids = state["episode_ids"].numpy().copy()
+        self.count = state["count"].numpy().copy()
+        self.capacity = int(self.embeddings.shape[0])
+
+    def sample_pairs(self, n_pairs: int, max_distance: int, rng: np.random.Generator) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """Draw up to ``n_pairs`` pairs (s_t, s_{t+y}) from one episode, y uniform in [1, max_distance].
+
+        :return: phi(s), phi(g), y (float), each with the same first dimension (possibly fewer than n_pairs)
+        """
+        filled = np.minimum(self.count, self.capacity)
+        if self.capacity == 0 or filled.sum() < 2:
+            empty = th.zeros(0, self.embed_dim)
+            return empty, empty, th.zeros(0)
+        starts = self.count - filled  # chronological index 0 = absolute step count - filled
+        weights = filled / filled.sum()
+        chosen_e, chosen_t, chosen_y = [], [], []
+        got = 0
+        for _ in range(20):
+            m = 2 * (n_pairs - got) + 16
+            e = rng.choice(self.n_envs, size=m, p=weights)
+            c = (rng.random(m) * filled[e]).astype(np.int64)
+            y = rng.integers(1, max_distance + 1, size=m)
+            ok = c + y < filled[e]
+            e, c, y = e[ok], c[ok], y[ok]
+            s_slot = (starts[e] + c) % self.capacity
+            g_slot = (starts[e] + c + y) % self.capacity
+            ok = self.episode_ids[s_slot, e] == self.episode_ids[g_slot, e]
+            e, s_slot, g_slot, y = e[ok], s_slot[ok], g_slot[ok], y[ok]
+            take = min(len(e), n_pairs - got)
+            chosen_e.append(e[:take]), chosen_t.append(np.stack([s_slot[:take], g_slot[:take]])), chosen_y.append(y[:take])
+            got += take
+            if got >= n_pairs:
+                break
+        e = np.concatenate(chosen_e)
+        t = np.concatenate(chosen_t, axis=1)
+        y = np.concatenate(chosen_y)
+        e_t = th.from_numpy(e)
+        return self.embeddings[th.from_numpy(t[0]), e_t], self.embeddings[th.from_numpy(t[1]), e_t], th.from_numpy(y).float()

@@ -1,0 +1,247 @@
+"""PPO_GoCu: PPO learning from two reward streams, extrinsic and goal-based curiosity (paper Alg. 1).
+
+Read top to bottom, one iteration is:
+
+1. rollout (:meth:`PPO_GoCu.collect_rollouts`): the env stack carries a GoCu wrapper in ``"separate"``
+   mode, so the reward is extrinsic and r_gc arrives in ``infos["gocu_reward"]``; the critic has two heads
+   and both streams are stored; on a time-limit truncation both heads bootstrap from the terminal state
+   (Alg. 1 lines 10-15);
+2. GAE per stream, A = A_e + sigma * A_gc (:class:`~sb3_gocu.buffers.GoCuRolloutBuffer`, eq 10, lines 16-18);
+3. SB3's PPO update, unchanged, on A and on both value targets (line 19);
+4. the curiosity module learns at the rollout end: new goals, VAE every P_vae, predictor every P_m
+   (:class:`~sb3_gocu.GoCuCallback`, added to ``learn()`` automatically, lines 20-21).
+
+The module is ``model.curiosity``; ``save()`` stores its whole state beside the policy and ``load()``
+restores it, so training continues where it stopped.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import PPO
+from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.utils import obs_as_tensor
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_gocu.buffers import GoCuDictRolloutBuffer, GoCuRolloutBuffer
+from sb3_gocu.callbacks import GoCuCallback
+from sb3_gocu.curiosity import GoalCuriosityModule
+from sb3_gocu.policies import GoCuActorCriticCnnPolicy, GoCuActorCriticPolicy, GoCuMultiInputActorCriticPolicy
+from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module
+
+SelfPPOGoCu = TypeVar("SelfPPOGoCu", bound="PPO_GoCu")
+
+
+class PPO_GoCu(PPO):
+    """Proximal Policy Optimization with goal-based curiosity (GoCu).
+
+    Takes every argument of SB3's :class:`~stable_baselines3.PPO` (``learning_rate``, ``n_steps``,
+    ``batch_size``, ``n_epochs``, ``gamma``, ``gae_lambda``, ``clip_range``, ``ent_coef``, ``vf_coef``, ...),
+    plus:
+
+    :param policy: "MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a two-headed policy class
+    :param env: an env id, an env, or a VecEnv; without a GoCu wrapper it is wrapped in a
+        :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``) holding a new module
+    :param intrinsic_coef: sigma of eq 10, weight of the curiosity advantage A_gc
+    :param intrinsic_episodic: whether the curiosity stream stops at episode ends (True) or runs across
+        them, RND-style (False)
+    :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` (``n_goals``,
+        ``goal_strategy``, ``reward_scale``, ...); its ``intrinsic_gamma`` is the curiosity stream's discount
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": GoCuActorCriticPolicy,
+        "CnnPolicy": GoCuActorCriticCnnPolicy,
+        "MultiInputPolicy": GoCuMultiInputActorCriticPolicy,
+    }
+    rollout_buffer: GoCuRolloutBuffer | GoCuDictRolloutBuffer  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        policy: str | type[GoCuActorCriticPolicy],
+        env: GymEnv | str,
+        *args: Any,
+        intrinsic_coef: float = 0.25,
+        intrinsic_episodic: bool = True,
+        curiosity_kwargs: dict[str, Any] | None = None,
+        **kwargs: Any,
+    ) -> None:
+        if not intrinsic_coef >= 0:
+            raise ValueError(f"intrinsic_coef (sigma) must be >= 0, got {intrinsic_coef}")
+        self.intrinsic_coef = intrinsic_coef
+        self.intrinsic_episodic = intrinsic_episodic
+        self.curiosity_kwargs = dict(curiosity_kwargs or {})
+        self.curiosity: GoalCuriosityModule | None = None
+        super().__init__(policy, env, *args, **kwargs)
+
+    # ------------------------------------------------------------------ set-up
+    def _attach_curiosity(self) -> None:
+        """Find or make the curiosity module and make sure the training env carries it (separate mode)."""
+        found = find_gocu_module(self.env) if self.env is not None else None
+        if found is not None:
+            module, mode = found
+            if mode != "separate":
+                raise ValueError(
+                    "PPO_GoCu needs its GoCu wrapper in mode='separate' (it adds the curiosity advantage itself); "
+                    "the env's wrapper is in mode='sum'"
+                )
+            if self.curiosity is None:
+                self.curiosity = module
+            elif module is not self.curiosity:
+                # a loaded model brings its own module: the env's wrappers use it from now on
+                from sb3_gocu.wrappers import find_gocu_wrappers
+
+                for wrapper in find_gocu_wrappers(self.env):  # type: ignore[arg-type]
+                    wrapper.module = self.curiosity
+                self.curiosity.ensure_envs(self.env.num_envs)  # type: ignore[union-attr]
+            return
+        if self.curiosity is None:
+            self.curiosity = GoalCuriosityModule(self.observation_space, **{"seed": self.seed, **self.curiosity_kwargs})
+        if self.env is not None:
+            self.env = GoCuVecEnvWrapper(self.env, module=self.curiosity, mode="separate")
+
+    def _setup_model(self) -> None:
+        self._attach_curiosity()
+        assert self.curiosity is not None
+        if self.rollout_buffer_class is None or not issubclass(self.rollout_buffer_class, (GoCuRolloutBuffer, GoCuDictRolloutBuffer)):
+            self.rollout_buffer_class = GoCuDictRolloutBuffer if isinstance(self.observation_space, spaces.Dict) else GoCuRolloutBuffer
+        self.rollout_buffer_kwargs = {
+            **(self.rollout_buffer_kwargs or {}),
+            "intrinsic_gamma": self.curiosity.intrinsic_gamma,
+            "intrinsic_coef": self.intrinsic_coef,
+            "intrinsic_episodic": self.intrinsic_episodic,
+        }
+        super()._setup_model()
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        super().set_env(env, force_reset)
+        self._attach_curiosity()
+        if force_reset:
+            self._last_obs = None
+
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        """Add a :class:`GoCuCallback` for ``model.curiosity`` unless the user gave one."""
+
+        def has_gocu(cb: Any) -> bool:
+            if isinstance(cb, GoCuCallback):
+                return True
+            if isinstance(cb, CallbackList):
+                return any(has_gocu(c) for c in cb.callbacks)
+            if isinstance(cb, list):
+                return any(has_gocu(c) for c in cb)
+            return False
+
+        callbacks: list[BaseCallback] = list(callback) if isinstance(callback, list) else ([] if callback is None else [callback])  # type: ignore[list-item]
+        if not has_gocu(callbacks):
+            callbacks.append(GoCuCallback(self.curiosity, verbose=self.verbose))
+        return super()._init_callback(callbacks, progress_bar)
+
+    # ------------------------------------------------------------------ persistence
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "curiosity"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, variables = super()._get_torch_save_params()
+        return [*state_dicts, "curiosity"], variables
+
+    # ------------------------------------------------------------------ rollout
+    def collect_rollouts(
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        rollout_buffer: RolloutBuffer,
+        n_rollout_steps: int,
+    ) -> bool:
+        """SB3's rollout loop with two value heads: stores r_gc (from ``infos``) beside r_e, and bootstraps
+        both heads on time-limit truncations (the curiosity head only if the stream is episodic).
+
+        :return: True if ``n_rollout_steps`` steps were collected, False if a callback stopped the rollout
+        """
+        assert self._last_obs is not None, "No previous observation was provided"
+        assert isinstance(rollout_buffer, (GoCuRolloutBuffer, GoCuDictRolloutBuffer))
+        self.policy.set_training_mode(False)
+        n_steps = 0
+        rollout_buffer.reset()
+        if self.use_sde:
+            self.policy.reset_noise(env.num_envs)
+        callback.on_rollout_start()
+
+        while n_steps < n_rollout_steps:
+            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+                self.policy.reset_noise(env.num_envs)
+            with th.no_grad():
+                obs_tensor = obs_as_tensor(self._last_obs, self.device)  # type: ignore[arg-type]
+                actions, values, log_probs = self.policy(obs_tensor)  # values: (n_envs, 2)
+            actions = actions.cpu().numpy()
+            clipped_actions = actions
+            if isinstance(self.action_space, spaces.Box):
+                if self.policy.squash_output:
+                    clipped_actions = self.policy.unscale_action(clipped_actions)
+                else:
+                    clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
+
+            new_obs, rewards, dones, infos = env.step(clipped_actions)
+            intrinsic = np.array([info["gocu_reward"] for info in infos], dtype=np.float32)
+            self.num_timesteps += env.num_envs
+
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+            self._update_info_buffer(infos, dones)
+            n_steps += 1
+            if isinstance(self.action_space, spaces.Discrete):
+                actions = actions.reshape(-1, 1)
+
+            # time-limit truncation: bootstrap each stream with its own head and discount
+            for idx, done in enumerate(dones):
+                if done and infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False):
+                    terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
+                    with th.no_grad():
+                        terminal_value = self.policy.predict_values(terminal_obs)[0]  # type: ignore[arg-type]
+                    rewards[idx] += self.gamma * terminal_value[0].item()
+                    if self.intrinsic_episodic:
+                        intrinsic[idx] += rollout_buffer.intrinsic_gamma * terminal_value[1].item()
+
+            rollout_buffer.add(
+                self._last_obs,  # type: ignore[arg-type]
+                actions,
+                rewards,
+                self._last_episode_starts,  # type: ignore[arg-type]
+                values,
+                log_probs,
+                intrinsic_reward=intrinsic,
+            )
+            self._last_obs = new_obs  # type: ignore[assignment]
+            self._last_episode_starts = dones
+
+        with th.no_grad():
+            values = self.policy.predict_values(obs_as_tensor(new_obs, self.device))  # type: ignore[arg-type]
+        rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
+
+    def learn(
+        self: SelfPPOGoCu,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 1,
+        tb_log_name: str = "PPO_GoCu",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfPPOGoCu:
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )

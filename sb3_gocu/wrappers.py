@@ -1,0 +1,192 @@
+"""Reward wrappers that put goal-based curiosity into any Stable-Baselines3 pipeline.
+
+Both wrappers are thin: the maths lives in :class:`~sb3_gocu.curiosity.GoalCuriosityModule`. Each step
+they hand the module the states just reached (the terminal observation where an episode ended), and
+report in ``infos``:
+
+* ``"gocu_reward"``: r_gc normalised by the std of intrinsic returns (eq 14), the reward GoCu adds;
+* ``"gocu_raw_reward"``: r_gc before normalisation (eq 13);
+* ``"extrinsic_reward"``: the environment's reward, unchanged.
+
+``mode="sum"`` returns ``r_e + intrinsic_coef * r_gc`` as the reward (for any SB3 algorithm);
+``mode="separate"`` leaves the reward extrinsic (for :class:`~sb3_gocu.PPO_GoCu`, which reads r_gc from
+``infos``). Put the wrappers *above* ``Monitor`` (as ``make_vec_env`` does), so that the episode returns
+Monitor reports stay extrinsic.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
+
+from sb3_gocu.curiosity import GoalCuriosityModule
+
+MODES = ("sum", "separate")
+
+
+def _make_module(
+    observation_space: gym.Space, module: GoalCuriosityModule | None, curiosity_kwargs: dict[str, Any] | None
+) -> GoalCuriosityModule:
+    if module is None:
+        return GoalCuriosityModule(observation_space, **(curiosity_kwargs or {}))
+    if curiosity_kwargs:
+        raise ValueError("give either `module` or `curiosity_kwargs`, not both")
+    if module.observation_space != observation_space:
+        raise ValueError(
+            f"module was built for {module.observation_space}, but the env observes {observation_space}"
+        )
+    return module
+
+
+def _check_mode(mode: str, intrinsic_coef: float) -> None:
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if not intrinsic_coef >= 0:
+        raise ValueError(f"intrinsic_coef must be >= 0, got {intrinsic_coef}")
+
+
+class GoCuVecEnvWrapper(VecEnvWrapper):
+    """Goal-based curiosity for a whole VecEnv, batched over its envs.
+
+    :param venv: the vectorised environment (with ``Monitor`` below this wrapper)
+    :param module: the curiosity module; default: a new one built from ``curiosity_kwargs`` and the
+        env's observation space
+    :param mode: ``"sum"`` (reward = r_e + intrinsic_coef * r_gc) or ``"separate"`` (reward = r_e)
+    :param intrinsic_coef: weight of r_gc in the summed reward (``mode="sum"`` only)
+    :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
+    """
+
+    def __init__(
+        self,
+        venv: VecEnv,
+        module: GoalCuriosityModule | None = None,
+        mode: str = "sum",
+        intrinsic_coef: float = 1.0,
+        curiosity_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        _check_mode(mode, intrinsic_coef)
+        super().__init__(venv)
+        self.module = _make_module(venv.observation_space, module, curiosity_kwargs)
+        self.mode = mode
+        self.intrinsic_coef = intrinsic_coef
+        self.module.ensure_envs(self.num_envs)
+
+    def reset(self) -> Any:
+        obs = self.venv.reset()
+        self.module.begin_episodes(np.arange(self.num_envs))
+        return obs
+
+    def step_wait(self) -> VecEnvStepReturn:
+        obs, rewards, dones, infos = self.venv.step_wait()
+        reached = obs
+        if dones.any():
+            # the reward of the last transition is the curiosity of the terminal state, not of the reset one
+            done_idx = [i for i in np.flatnonzero(dones) if infos[i].get("terminal_observation") is not None]
+            if done_idx:
+                if isinstance(obs, dict):
+                    reached = {k: v.copy() for k, v in obs.items()}
+                    for i in done_idx:
+                        for k in reached:
+                            reached[k][i] = infos[i]["terminal_observation"][k]
+                else:
+                    reached = obs.copy()
+                    for i in done_idx:
+                        reached[i] = infos[i]["terminal_observation"]
+        raw, normalized = self.module.step(reached, dones)
+        for i, info in enumerate(infos):
+            info["extrinsic_reward"] = float(rewards[i])
+            info["gocu_raw_reward"] = float(raw[i])
+            info["gocu_reward"] = float(normalized[i])
+        if self.mode == "sum":
+            rewards = (rewards + self.intrinsic_coef * normalized).astype(np.float32)
+        return obs, rewards, dones, infos
+
+
+class GoCuWrapper(gym.Wrapper):
+    """Goal-based curiosity for one gymnasium env (rl-zoo3's ``env_wrapper``, or a ``DummyVecEnv`` of such
+    envs). Several envs of one ``DummyVecEnv`` should share one module (pass the same ``module``); each
+    wrapper takes an env index in it.
+
+    :param env: the environment
+    :param module: the curiosity module (default: a new one from ``curiosity_kwargs``)
+    :param mode: ``"sum"`` or ``"separate"``, as for :class:`GoCuVecEnvWrapper`
+    :param intrinsic_coef: weight of r_gc in the summed reward (``mode="sum"`` only)
+    :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        module: GoalCuriosityModule | None = None,
+        mode: str = "sum",
+        intrinsic_coef: float = 1.0,
+        curiosity_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        _check_mode(mode, intrinsic_coef)
+        super().__init__(env)
+        self.module = _make_module(env.observation_space, module, curiosity_kwargs)
+        self.mode = mode
+        self.intrinsic_coef = intrinsic_coef
+        self.env_index = self.module.register_env()
+        self._index = np.array([self.env_index])
+
+    @staticmethod
+    def _batch(obs: Any) -> Any:
+        if isinstance(obs, dict):
+            return {k: np.asarray(v)[None] for k, v in obs.items()}
+        return np.asarray(obs)[None]
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict]:
+        obs, info = self.env.reset(**kwargs)
+        self.module.begin_episodes(self._index)
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        done = bool(terminated or truncated)
+        raw, normalized = self.module.step(self._batch(obs), np.array([done]), self._index)
+        info["extrinsic_reward"] = float(reward)
+        info["gocu_raw_reward"] = float(raw[0])
+        info["gocu_reward"] = float(normalized[0])
+        if self.mode == "sum":
+            reward = float(reward) + self.intrinsic_coef * float(normalized[0])
+        return obs, reward, terminated, truncated, info
+
+
+def find_gocu_wrappers(env: VecEnv | gym.Env) -> list[GoCuVecEnvWrapper | GoCuWrapper]:
+    """Every GoCu wrapper in a VecEnv's wrapper stack, including per-env wrappers of a ``DummyVecEnv``."""
+    found: list[GoCuVecEnvWrapper | GoCuWrapper] = []
+    venv: Any = env
+    while isinstance(venv, VecEnvWrapper):
+        if isinstance(venv, GoCuVecEnvWrapper):
+            found.append(venv)
+        venv = venv.venv
+    envs = venv.envs if isinstance(venv, DummyVecEnv) else ([venv] if isinstance(venv, gym.Env) else [])
+    for e in envs:
+        while isinstance(e, gym.Wrapper):
+            if isinstance(e, GoCuWrapper):
+                found.append(e)
+            e = e.env
+    return found
+
+
+def find_gocu_module(env: VecEnv | gym.Env) -> tuple[GoalCuriosityModule, str] | None:
+    """The curiosity module of an env's GoCu wrappers and their mode, or None if there is none.
+
+    :raises ValueError: if the wrappers hold several modules or mix modes
+    """
+    wrappers = find_gocu_wrappers(env)
+    if not wrappers:
+        return None
+    modules = {id(w.module): w.module for w in wrappers}
+    modes = {w.mode for w in wrappers}
+    if len(modules) > 1 or len(modes) > 1:
+        raise ValueError(
+            f"found {len(wrappers)} GoCu wrappers holding {len(modules)} modules in modes {sorted(modes)}: "
+            "all wrappers of one training env must share one module and one mode"
+        )
+    return wrappers[0].module, wrappers[0].mode

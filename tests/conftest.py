@@ -1,0 +1,63 @@
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+
+
+class ChainEnv(gym.Env):
+    """A tiny deterministic env: a 1-D position in [0, length], actions 0 (left) / 1 (right).
+
+    Reaching the right end terminates with reward 1; after ``max_steps`` steps the episode is truncated.
+    Observations are float vectors (position, position squared) so that GoCu embeds them with its MLP VAE.
+    """
+
+    def __init__(self, length: int = 6, max_steps: int = 20):
+        self.length = length
+        self.max_steps = max_steps
+        self.observation_space = spaces.Box(-1.0, 10.0, (2,), np.float32)
+        self.action_space = spaces.Discrete(2)
+        self.pos = 0
+        self.t = 0
+
+    def _obs(self):
+        x = self.pos / self.length
+        return np.array([x, x * x], dtype=np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.pos, self.t = 0, 0
+        return self._obs(), {}
+
+    def step(self, action):
+        self.t += 1
+        self.pos = int(np.clip(self.pos + (1 if action == 1 else -1), 0, self.length))
+        terminated = self.pos == self.length
+        truncated = not terminated and self.t >= self.max_steps
+        return self._obs(), float(terminated), terminated, truncated, {}
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    th.set_num_threads(1)
+    yield
+
+
+SMALL_CURIOSITY = dict(
+    n_goals=4,
+    goal_buffer_size=32,
+    predictor_hidden=(32, 32),
+    predictor_pairs=256,
+    predictor_epochs=2,
+    predictor_train_freq=256,
+    embed_dim=8,
+    latent_dim=2,
+    vae_epochs=1,
+    vae_train_freq=512,
+    pretrain_steps=64,
+    memory_size=256,
+)

@@ -1,0 +1,125 @@
+"""Goal strategies, the novelty filter and the capacity limits of the goal buffer and memory bank."""
+
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_gocu.curiosity import GoalBuffer, MemoryBank, TrajectoryStore, select_goal_steps
+
+
+def draws(strategy, length=50, n_new=7, n=3000, seed=0):
+    rng = np.random.default_rng(seed)
+    counts = np.zeros(length)
+    for _ in range(n):
+        steps = select_goal_steps(length, n_new, strategy, rng)
+        assert steps[-1] == length - 1, "the final state is always a candidate"
+        assert len(steps) == n_new + 1 and len(set(steps.tolist())) == n_new + 1
+        counts[steps] += 1
+    return counts / n
+
+
+def test_random_strategy_is_uniform_over_earlier_steps():
+    freq = draws("random")
+    assert freq[-1] == 1.0
+    # each earlier step is drawn with probability 7 / 49
+    assert np.abs(freq[:-1] - 7 / 49).max() < 0.04
+
+
+def test_proportional_strategy_prefers_late_states():
+    freq = draws("proportional")
+    early, late = freq[:10].mean(), freq[39:49].mean()
+    assert late > 3 * early
+    # monotone trend: correlation of frequency with step index is strongly positive
+    assert np.corrcoef(np.arange(49), freq[:-1])[0, 1] > 0.9
+
+
+def test_late_strategy_only_draws_from_last_4l_steps():
+    freq = draws("late")
+    window = np.arange(49 - 28, 49)
+    assert freq[: window[0]].sum() == 0
+    assert np.abs(freq[window] - 7 / 28).max() < 0.04
+
+
+def test_short_episode_and_unknown_strategy():
+    rng = np.random.default_rng(0)
+    assert select_goal_steps(3, 7, "proportional", rng).tolist() == [0, 1, 2]
+    assert select_goal_steps(1, 7, "random", rng).tolist() == [0]
+    with pytest.raises(ValueError, match="goal_strategy"):
+        select_goal_steps(10, 2, "earliest", rng)
+
+
+def make_buffer(capacity=4, novelty=0.5):
+    return GoalBuffer(capacity, obs_shape=(1,), obs_dtype=np.float32, embed_dim=2, novelty=novelty)
+
+
+def test_novelty_filter_on_hand_made_buffer():
+    rng = np.random.default_rng(0)
+    buf = make_buffer(capacity=10, novelty=0.5)
+    pts = np.array([[0, 0], [4, 0], [0, 4]], dtype=np.float32)
+    assert buf.add(pts[:, :1], th.from_numpy(pts), rng) == 3
+    # nearest-neighbour distances: 4, 4, 4 -> median 4 -> threshold 0.5 * 4 = 2
+    assert buf.threshold() == pytest.approx(2.0)
+    near = np.array([[1.5, 0]], dtype=np.float32)  # 1.5 from (0, 0): refused
+    far = np.array([[2.5, 2.5]], dtype=np.float32)  # sqrt(2 * 1.5^2) ~ 2.12 from (4, 0) and (0, 4): kept
+    assert buf.add(near[:, :1], th.from_numpy(near), rng) == 0
+    assert buf.add(far[:, :1], th.from_numpy(far), rng) == 1
+    assert buf.size == 4 and buf.n_refused == 1
+    # an exact duplicate is refused even with novelty 0
+    buf0 = make_buffer(novelty=0.0)
+    assert buf0.add(pts[:2, :1], th.from_numpy(pts[:2]), rng) == 2
+    assert buf0.add(pts[:1, :1], th.from_numpy(pts[:1]), rng) == 0
+
+
+def test_goal_buffer_capacity_and_random_replacement():
+    rng = np.random.default_rng(1)
+    buf = make_buffer(capacity=4, novelty=0.0)
+    pts = np.stack([np.arange(10.0), np.zeros(10)], axis=1).astype(np.float32) * 10
+    assert buf.add(pts[:, :1], th.from_numpy(pts), rng) == 10
+    assert buf.size == 4 and buf.observations.shape[0] == 4
+    # the buffer holds 4 distinct goals, and later goals replaced earlier ones
+    held = sorted(buf.observations[:, 0].tolist())
+    assert len(set(held)) == 4 and max(held) > 30
+    assert th.equal(buf.embeddings[:, 0], th.from_numpy(buf.observations[:, 0]))
+
+
+def test_goal_sampling_without_replacement():
+    rng = np.random.default_rng(0)
+    buf = make_buffer(capacity=10, novelty=0.0)
+    pts = np.stack([np.arange(6.0), np.zeros(6)], axis=1).astype(np.float32)
+    buf.add(pts[:, :1], th.from_numpy(pts), rng)
+    idx = buf.sample(100, 6, rng)
+    assert idx.shape == (100, 6)
+    assert all(sorted(row) == list(range(6)) for row in idx.tolist())
+    assert buf.sample(3, 8, rng).shape == (3, 8)  # fewer goals than K: with replacement
+    assert make_buffer().sample(3, 2, rng).shape == (3, 0)
+
+
+def test_memory_bank_capacity():
+    rng = np.random.default_rng(0)
+    bank = MemoryBank(5, (2,), np.uint8)
+    bank.add(np.arange(8, dtype=np.uint8)[:, None].repeat(2, 1), rng)
+    assert bank.size == 5 and bank.observations.shape == (5, 2)
+    for _ in range(50):
+        bank.add(np.full((3, 2), 200, np.uint8), rng)
+    assert bank.size == 5
+    assert (bank.observations == 200).all(axis=1).sum() >= 4  # random replacement reached nearly every slot
+
+
+def test_trajectory_store_pairs_stay_in_episode_and_capacity():
+    rng = np.random.default_rng(0)
+    store = TrajectoryStore(total_capacity=40, embed_dim=1, min_per_env=4)
+    store.ensure_envs(2)
+    assert store.capacity == 20
+    for t in range(50):
+        episode = np.array([t // 10, 100 + t // 7])
+        store.add(th.tensor([[float(t)], [float(t)]]), episode, np.arange(2))
+    assert len(store) == 40
+    s, g, y = store.sample_pairs(500, max_distance=5, rng=rng)
+    assert len(s) == 500
+    gap = (g - s)[:, 0]
+    assert th.equal(gap, y) and y.min() >= 1 and y.max() <= 5
+    # same episode: for env 0 episodes are blocks of 10 steps, for env 1 blocks of 7
+    s_np, g_np = s[:, 0].numpy(), g[:, 0].numpy()
+    same = (s_np // 10 == g_np // 10) | (s_np // 7 == g_np // 7)
+    assert same.all()
+    assert s_np.min() >= 30  # only the last 20 steps per env are kept

@@ -1,0 +1,128 @@
+"""The reward formulas (eq 13-16) and the fast predictor path against numbers computed by hand."""
+
+import math
+
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+
+from sb3_gocu.curiosity import (
+    GoalCuriosityModule,
+    IntrinsicReturnNormalizer,
+    MasteryPredictor,
+    complexity_score,
+    curiosity_reward,
+    mastered_probability,
+)
+
+
+def sigmoid(x):
+    return 1 / (1 + math.exp(-x))
+
+
+def tiny_predictor() -> MasteryPredictor:
+    """embed_dim 1, one hidden unit: logit_1 - logit_0 = 2 * relu(0.5 s + 0.25 g) - 1 (BN is the identity)."""
+    p = MasteryPredictor(embed_dim=1, hidden_sizes=(1,))
+    lin, bn = p.hidden[0], p.hidden[1]
+    with th.no_grad():
+        lin.weight[:] = th.tensor([[0.5, 0.25]])
+        lin.bias[:] = 0.0
+        bn.weight[:] = 1.0
+        bn.bias[:] = 0.0
+        bn.running_mean[:] = 0.0
+        bn.running_var[:] = 1.0
+        bn.eps = 0.0
+        p.out.weight[:] = th.tensor([[0.0], [2.0]])
+        p.out.bias[:] = th.tensor([0.0, -1.0])
+    return p.eval()
+
+
+def test_tiny_predictor_by_hand():
+    p = tiny_predictor()
+    s = th.tensor([[1.0], [2.0], [-4.0]])
+    g = th.tensor([[2.0], [0.0], [1.0]])
+    # hidden = relu(0.5 s + 0.25 g): 1.0, 1.0, 0.0 -> logit difference 1, 1, -1
+    expected = [sigmoid(1.0), sigmoid(1.0), sigmoid(-1.0)]
+    assert p.mastery(s, g).tolist() == pytest.approx(expected, abs=1e-6)
+    assert p.fold().mastery(s, g).tolist() == pytest.approx(expected, abs=1e-6)
+
+
+def test_folded_predictor_equals_eval_module():
+    th.manual_seed(0)
+    p = MasteryPredictor(embed_dim=16, hidden_sizes=(64, 64, 64))
+    p.train()
+    for _ in range(3):  # give batch norm non-trivial running statistics
+        p(th.randn(32, 16) * 3 + 1, th.randn(32, 16))
+    p.eval()
+    s, g = th.randn(5, 16), th.randn(5, 7, 16)
+    folded = p.fold()
+    fast = folded.mastery_from_parts(folded.state_part(s), folded.goal_part(g))
+    slow = p.mastery(s[:, None].expand(5, 7, 16).reshape(-1, 16), g.reshape(-1, 16)).view(5, 7)
+    assert fast.shape == (5, 7)
+    assert th.allclose(fast, slow, atol=1e-6)
+
+
+def test_curiosity_reward_eq13_by_hand():
+    m = th.tensor([[0.2, 0.9, 0.5], [0.1, 0.1, 0.4]])
+    assert curiosity_reward(m, alpha=1.0, aggregation="max", scale=10.0).tolist() == pytest.approx([0.01, 0.06])
+    assert curiosity_reward(m, alpha=1.0, aggregation="mean", scale=10.0).tolist() == pytest.approx([(1 - 1.6 / 3) / 10, 0.08])
+    valid = th.tensor([[True, False, True], [False, False, False]])
+    # goals that do not exist are ignored; no goal at all means h = 0
+    assert curiosity_reward(m, 1.0, "max", 10.0, valid=valid).tolist() == pytest.approx([0.05, 0.1])
+    assert curiosity_reward(m, 1.0, "mean", 10.0, valid=valid).tolist() == pytest.approx([(1 - 0.35) / 10, 0.1])
+    with pytest.raises(ValueError, match="aggregation"):
+        curiosity_reward(m, aggregation="min")
+
+
+def test_labels_eq15_eq16_by_hand():
+    prior = th.tensor([0.0, 0.5, 1.0])
+    dist = th.tensor([3.0, 15.0, 30.0])
+    sc = complexity_score(prior, dist, prior_weight=3.0, distance_weight=1.0)
+    assert sc.tolist() == pytest.approx([3.0, 16.5, 33.0])
+    p = mastered_probability(sc, threshold=15.0, slope=0.8)
+    expected = [1 - 1 / (1 + math.exp(-0.8 * (x - 15.0))) for x in (3.0, 16.5, 33.0)]
+    assert p.tolist() == pytest.approx(expected, abs=1e-6)
+    assert expected[0] > 0.99 and expected[2] < 1e-5  # near skills are mastered, far ones are not
+
+
+def test_normalizer_eq14_by_hand():
+    norm = IntrinsicReturnNormalizer(gamma=0.5, epsilon=0.0)
+    norm.ensure_envs(2)
+    envs = np.arange(2)
+    out1 = norm(np.array([1.0, 3.0]), envs)
+    # returns [1, 3]; running stats from (count 1e-4, mean 0, var 1) merged with batch (mean 2, var 1)
+    c = 1e-4
+    mean1 = 2 * 2 / (c + 2)
+    var1 = (1 * c + 1 * 2 + 4 * c * 2 / (c + 2)) / (c + 2)
+    assert out1 == pytest.approx(np.array([1.0, 3.0]) / math.sqrt(var1), rel=1e-6)
+    out2 = norm(np.array([0.0, 1.0]), envs)
+    # returns now [0.5, 2.5]: batch mean 1.5, var 1
+    total = c + 4
+    delta = 1.5 - mean1
+    var2 = (var1 * (c + 2) + 1 * 2 + delta**2 * (c + 2) * 2 / total) / total
+    assert out2 == pytest.approx(np.array([0.0, 1.0]) / math.sqrt(var2), rel=1e-6)
+    # evaluation does not move the statistics
+    assert norm(np.array([1.0, 1.0]), envs, update=False) == pytest.approx(np.array([1.0, 1.0]) / math.sqrt(var2), rel=1e-6)
+
+
+def test_module_reward_path_by_hand():
+    """The module's whole step (goal halves, folding, cache) against the tiny predictor by hand."""
+    space = spaces.Box(-10, 10, (1,), np.float32)
+    mod = GoalCuriosityModule(space, n_goals=2, goal_buffer_size=2, embed_dim=1, predictor_hidden=(1,), seed=0, goal_novelty=0.0)
+    mod.vae.embed = lambda x: x  # phi(s) = s, so the numbers stay hand-made
+    mod.predictor = tiny_predictor()
+    mod._folded = mod.predictor.fold()
+    goals = np.array([[2.0], [-4.0]], dtype=np.float32)
+    assert mod.goal_buffer.add(goals, th.from_numpy(goals), mod.rng) == 2
+    mod.ensure_envs(2)
+    mod.begin_episodes(np.arange(2))
+    raw, normalized = mod.step(np.array([[1.0], [-2.0]], dtype=np.float32), np.zeros(2, bool))
+    # env 0, s = 1: hidden relu(0.5 + 0.5) = 1 -> m = sig(1); relu(0.5 - 1) = 0 -> m = sig(-1); h = max = sig(1)
+    # env 1, s = -2: relu(-1 + 0.5) = 0, relu(-1 - 1) = 0 -> both sig(-1)
+    assert raw.tolist() == pytest.approx([(1 - sigmoid(1)) / 10, (1 - sigmoid(-1)) / 10], abs=1e-6)
+    assert normalized.tolist() == pytest.approx((raw / mod.normalizer.std).tolist(), abs=1e-6)
+    # the same state again in the same episode comes from the cache, with the same value
+    raw2, _ = mod.step(np.array([[1.0], [-2.0]], dtype=np.float32), np.zeros(2, bool))
+    assert raw2.tolist() == raw.tolist()
+    assert mod.pop_reward_stats()["cache_hit_rate"] == pytest.approx(0.5)

@@ -136,7 +136,7 @@ class GoCuRolloutBuffer(_TwoStreams, RolloutBuffer):
     (other parameters: SB3's ``RolloutBuffer``)
     """
 
-    def __init__(self, *args: Any, intrinsic_gamma: float = 0.99, intrinsic_coef: float = 0.25, intrinsic_episodic: bool = True, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, intrinsic_gamma: float = 0.99, intrinsic_coef: float = 0.25, intrinsic_episodic: bool = False, **kwargs: Any) -> None:
         self._init_streams(intrinsic_gamma, intrinsic_coef, intrinsic_episodic)
         super().__init__(*args, **kwargs)
 
@@ -144,6 +144,6 @@ class GoCuRolloutBuffer(_TwoStreams, RolloutBuffer):
 class GoCuDictRolloutBuffer(_TwoStreams, DictRolloutBuffer):
     """SB3 ``DictRolloutBuffer`` with a curiosity stream (parameters as :class:`GoCuRolloutBuffer`)."""
 
-    def __init__(self, *args: Any, intrinsic_gamma: float = 0.99, intrinsic_coef: float = 0.25, intrinsic_episodic: bool = True, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, intrinsic_gamma: float = 0.99, intrinsic_coef: float = 0.25, intrinsic_episodic: bool = False, **kwargs: Any) -> None:
         self._init_streams(intrinsic_gamma, intrinsic_coef, intrinsic_episodic)
         super().__init__(*args, **kwargs)

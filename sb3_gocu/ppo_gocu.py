@@ -51,7 +51,9 @@ class PPO_GoCu(PPO):
         :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``) holding a new module
     :param intrinsic_coef: sigma of eq 10, weight of the curiosity advantage A_gc
     :param intrinsic_episodic: whether the curiosity stream stops at episode ends (True) or runs across
-        them, RND-style (False)
+        them, RND-style (False, the default). r_gc is positive almost everywhere, so an episodic stream pays
+        the agent for *not* ending episodes: on DoorKey-5x5 (seed 0) it kept every episode at the 250-step
+        limit and the return at 0.0 at 120k steps, where the non-episodic stream learns the task
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` (``n_goals``,
         ``goal_strategy``, ``reward_scale``, ...); its ``intrinsic_gamma`` is the curiosity stream's discount
     """
@@ -69,7 +71,7 @@ class PPO_GoCu(PPO):
         env: GymEnv | str,
         *args: Any,
         intrinsic_coef: float = 0.25,
-        intrinsic_episodic: bool = True,
+        intrinsic_episodic: bool = False,
         curiosity_kwargs: dict[str, Any] | None = None,
         **kwargs: Any,
     ) -> None:

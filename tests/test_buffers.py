@@ -78,10 +78,11 @@ def test_non_episodic_curiosity_stream_ignores_episode_ends():
     assert buf.intrinsic_returns[:, 0].tolist() == pytest.approx([1.875, 1.75, 1.5, 1.0])
 
 
-def test_rollout_bootstraps_both_heads_on_truncation():
+@pytest.mark.parametrize("episodic", [True, False])
+def test_rollout_bootstraps_both_heads_on_truncation(episodic):
     env = make_vec_env(lambda: ChainEnv(length=50, max_steps=3), n_envs=1, seed=0)
     # learning_rate=0 keeps the critic as it was during the rollout, so the bootstrap can be recomputed
-    model = PPO_GoCu("MlpPolicy", env, n_steps=6, batch_size=6, n_epochs=1, seed=0, gamma=0.9, learning_rate=0.0,
+    model = PPO_GoCu("MlpPolicy", env, n_steps=6, batch_size=6, n_epochs=1, seed=0, gamma=0.9, learning_rate=0.0, intrinsic_episodic=episodic,
                      curiosity_kwargs={**SMALL_CURIOSITY, "intrinsic_gamma": 0.7, "pretrain_steps": 0})
     seen = []
     original_add = model.rollout_buffer.add
@@ -109,7 +110,10 @@ def test_rollout_bootstraps_both_heads_on_truncation():
             v = model.policy.predict_values(model.policy.obs_to_tensor(info["terminal_observation"])[0])[0]
         r_e, r_i = seen[t]
         assert r_e[0] == pytest.approx(info["extrinsic_reward"] + 0.9 * v[0].item(), abs=1e-6)
-        assert r_i[0] == pytest.approx(info["gocu_reward"] + 0.7 * v[1].item(), abs=1e-6)
+        # an episodic curiosity stream bootstraps its own head with its own discount; a non-episodic one
+        # runs on into the next episode and needs no bootstrap
+        bootstrap = 0.7 * v[1].item() if episodic else 0.0
+        assert r_i[0] == pytest.approx(info["gocu_reward"] + bootstrap, abs=1e-6)
         assert abs(v[1].item()) > 1e-4  # the curiosity head's bootstrap is a real term
     for t in (0, 1, 3, 4):
         r_e, r_i = seen[t]

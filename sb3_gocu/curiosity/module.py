@@ -199,9 +199,14 @@ class GoalCuriosityModule:
         self.rng = np.random.default_rng(seed)
         self._torch_gen = th.Generator().manual_seed(int(self.rng.integers(2**62)))
         vae_cls = ConvVAE if self.adapter.is_image else MlpVAE
-        self.vae = vae_cls(self.adapter.input_shape, embed_dim=embed_dim, latent_dim=latent_dim).to(self.device)
+        init_seed = int(self.rng.integers(2**62))
+        # with a seed, the initial weights depend on it alone, not on the global torch RNG's state
+        with th.random.fork_rng(devices=[], enabled=seed is not None):
+            if seed is not None:
+                th.manual_seed(init_seed)
+            self.vae = vae_cls(self.adapter.input_shape, embed_dim=embed_dim, latent_dim=latent_dim).to(self.device)
+            self.predictor = MasteryPredictor(embed_dim, predictor_hidden).to(self.device)
         self.vae_optimizer = th.optim.Adam(self.vae.parameters(), lr=vae_lr)
-        self.predictor = MasteryPredictor(embed_dim, predictor_hidden).to(self.device)
         self.predictor_optimizer = th.optim.Adam(self.predictor.parameters(), lr=predictor_lr)
         self.vae.eval()
         self.predictor.eval()
@@ -220,6 +225,8 @@ class GoalCuriosityModule:
         self._episode_ids = np.zeros(0, dtype=np.int64)
         self._episodes: list[deque] = []
         self._reward_cache: list[dict] = []
+        self._phi_cache: dict[bytes, th.Tensor] = {}
+        self.embedding_cache_size = 100_000
         self._next_episode_id = 0
         self.finished_episodes: deque = deque(maxlen=1024)
 
@@ -234,10 +241,15 @@ class GoalCuriosityModule:
         self._reward_sum = 0.0
         self._reward_sq_sum = 0.0
         self._reward_count = 0
-        self._cache_hits = 0
+        self._cache_hits = 0  # since the last pop_reward_stats
         self._cache_lookups = 0
+        #: cumulative figures (seconds, counts) since construction
+        self.cache_hits = 0
+        self.cache_lookups = 0
         self.time_inference = 0.0
         self.time_training = 0.0
+        self.time_vae = 0.0
+        self.time_predictor = 0.0
         self._folded = self.predictor.fold()
 
     # ------------------------------------------------------------------ embedding and scoring
@@ -321,10 +333,10 @@ class GoalCuriosityModule:
 
     @th.inference_mode()
     def _score(self, raw: np.ndarray, env_indices: np.ndarray) -> tuple[np.ndarray, th.Tensor]:
-        """Raw r_gc and phi of one observation per env, memoised per episode."""
+        """Raw r_gc and phi of one observation per env, memoised per episode on the observation's bytes."""
         n = len(raw)
         rewards = np.empty(n, dtype=np.float32)
-        phi = th.empty(n, self.goal_buffer.embeddings.shape[1])
+        phi = np.empty((n, self.goal_buffer.embeddings.shape[1]), dtype=np.float32)
         keys = [self._key(x) for x in raw]
         miss = []
         for j, (e, key) in enumerate(zip(env_indices, keys)):
@@ -335,21 +347,48 @@ class GoalCuriosityModule:
                 rewards[j], phi[j] = hit
         self._cache_lookups += n
         self._cache_hits += n - len(miss)
+        self.cache_lookups += n
+        self.cache_hits += n - len(miss)
         if miss:
             m_idx = np.asarray(miss)
             envs = th.from_numpy(env_indices[m_idx])
-            phi_m = self.vae.embed(self.adapter.to_tensor(raw[m_idx], self.device)).cpu()
-            mastery = self._folded.mastery_from_parts(self._folded.state_part(phi_m), self._goal_parts[envs])
-            r = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale, valid=self._goal_valid[envs])
-            r_np = r.numpy()
+            phi_m = self._embed_cached(raw, m_idx, keys)
+            valid = self._goal_valid[envs]
+            r = th.full((len(m_idx),), self.alpha / self.reward_scale)  # no goal yet: h = 0
+            with_goals = valid[:, 0]
+            if bool(with_goals.any()):
+                rows = with_goals.nonzero()[:, 0]
+                mastery = self._folded.mastery_from_parts(self._folded.state_part(phi_m[rows]), self._goal_parts[envs[rows]])
+                r[rows] = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale, valid=valid[rows])
+            r_np, phi_np = r.numpy(), phi_m.numpy()
             rewards[m_idx] = r_np
-            phi[th.from_numpy(m_idx)] = phi_m
-            for j, rj, pj in zip(miss, r_np, phi_m):
+            phi[m_idx] = phi_np
+            for j, rj, pj in zip(miss, r_np, phi_np):
                 cache = self._reward_cache[env_indices[j]]
                 if len(cache) >= self.episode_memory:
                     cache.clear()
                 cache[keys[j]] = (rj, pj)
-        return rewards, phi
+        return rewards, th.from_numpy(phi)
+
+    def _embed_cached(self, raw: np.ndarray, rows: np.ndarray, keys: list[bytes]) -> th.Tensor:
+        """phi of ``raw[rows]``, memoised on the observation's bytes until the next VAE update."""
+        out = th.empty(len(rows), self.goal_buffer.embeddings.shape[1])
+        todo = []
+        for i, j in enumerate(rows):
+            hit = self._phi_cache.get(keys[j])
+            if hit is None:
+                todo.append(i)
+            else:
+                out[i] = hit
+        if todo:
+            todo_rows = rows[np.asarray(todo)]
+            fresh = self.vae.embed(self.adapter.to_tensor(raw[todo_rows], self.device)).cpu()
+            out[th.as_tensor(todo)] = fresh
+            if len(self._phi_cache) + len(todo) > self.embedding_cache_size:
+                self._phi_cache.clear()
+            for j, f in zip(todo_rows, fresh):
+                self._phi_cache[keys[j]] = f
+        return out
 
     # ------------------------------------------------------------------ the step
     def step(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -435,12 +474,14 @@ class GoalCuriosityModule:
                 self.vae_optimizer.step()
                 losses.append(loss.item())
         self.vae.eval()
+        self._phi_cache.clear()
         self.goal_buffer.refresh(self.embed)
         self.trajectories.clear()  # stored embeddings belong to the old encoder
         self._refresh_active_goals()
         self.last_vae_update = self.n_recorded_steps
         dt = time.perf_counter() - t0
         self.time_training += dt
+        self.time_vae += dt
         out = {
             "vae_loss": float(np.mean(losses)) if losses else float("nan"),
             "vae_distinct_observations": float(n),
@@ -500,6 +541,7 @@ class GoalCuriosityModule:
         self._refresh_active_goals()
         dt = time.perf_counter() - t0
         self.time_training += dt
+        self.time_predictor += dt
         out = {
             "predictor_loss": float(np.mean(losses)) if losses else float("nan"),
             "predictor_accuracy": float(np.mean(accs)) if accs else float("nan"),
@@ -576,6 +618,7 @@ class GoalCuriosityModule:
         if missing:
             raise ValueError(f"curiosity state is missing {sorted(missing)}: not a GoalCuriosityModule state_dict")
         self.vae.load_state_dict(state["vae"], strict=strict)
+        self._phi_cache.clear()
         self.predictor.load_state_dict(state["predictor"], strict=strict)
         if "vae_optimizer" in state:
             self.vae_optimizer.load_state_dict(state["vae_optimizer"])

@@ -1,0 +1,136 @@
+"""Throughput of PPO_GoCu against plain PPO, measured in one run, and where PPO_GoCu's time goes.
+
+    python benchmarks/throughput.py --env GoCu/DoorKey-8x8-v0 --timesteps 100000 --threads 2
+
+Prints, for the same env, step count and PPO settings (SPEC: 16 envs, n_steps 128, batch 256, 4 epochs):
+raw env steps/s with random actions (the ceiling), plain PPO steps/s, PPO_GoCu steps/s (paper settings:
+K = 50, 5x512 predictor, P_m = 20k, P_vae = 100k, VAE pretraining on 10k random-policy observations, all
+included), their ratio, and PPO_GoCu's time split into env stepping, policy forward and rollout
+bookkeeping, PPO update, curiosity inference, VAE training (pretraining included) and predictor training.
+The order of the runs alternates (``--order``) so that neither always runs on a warmer machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3 import PPO
+from stable_baselines3.common.env_util import make_vec_env
+
+import sb3_gocu  # noqa: F401  (registers the GoCu ids)
+from sb3_gocu import PaperCNN, PPO_GoCu
+
+PPO_SETTINGS: dict[str, Any] = dict(
+    n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2
+)
+
+
+class Timer:
+    """Accumulates the wall time spent in wrapped methods."""
+
+    def __init__(self) -> None:
+        self.totals: dict[str, float] = {}
+
+    def wrap(self, obj: Any, name: str, label: str) -> None:
+        original = getattr(obj, name)
+
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            t0 = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                self.totals[label] = self.totals.get(label, 0.0) + time.perf_counter() - t0
+
+        setattr(obj, name, timed)
+
+
+def innermost(venv: Any) -> Any:
+    while hasattr(venv, "venv"):
+        venv = venv.venv
+    return venv
+
+
+def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int) -> float:
+    venv = make_vec_env(env_id, n_envs=n_envs, seed=seed)
+    venv.reset()
+    rng = np.random.default_rng(seed)
+    n = venv.action_space.n
+    t0 = time.perf_counter()
+    for _ in range(steps // n_envs):
+        venv.step(rng.integers(n, size=n_envs))
+    return (steps // n_envs) * n_envs / (time.perf_counter() - t0)
+
+
+def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dict[str, Any]) -> dict[str, float]:
+    venv = make_vec_env(env_id, n_envs=16, seed=seed)
+    timer = Timer()
+    timer.wrap(innermost(venv), "step_wait", "env")
+    if algo == "ppo":
+        model = PPO("CnnPolicy", venv, seed=seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **PPO_SETTINGS)
+    else:
+        model = PPO_GoCu("CnnPolicy", venv, seed=seed, curiosity_kwargs=curiosity_kwargs, **PPO_SETTINGS)
+    timer.wrap(model, "train", "ppo_update")
+    timer.wrap(model, "collect_rollouts", "rollout")
+    t0 = time.perf_counter()
+    model.learn(timesteps)
+    total = time.perf_counter() - t0
+    out = {"total_s": total, "steps": float(model.num_timesteps), "steps_per_s": model.num_timesteps / total}
+    out.update({f"{k}_s": v for k, v in timer.totals.items()})
+    if algo == "ppo_gocu":
+        mod = model.curiosity
+        out["curiosity_inference_s"] = mod.time_inference
+        out["vae_training_s"] = mod.time_vae
+        out["predictor_training_s"] = mod.time_predictor
+        out["cache_hit_rate"] = mod.cache_hits / max(1, mod.cache_lookups)
+        # the random-policy pretraining steps go through the env and the curiosity module too
+        out["pretrain_s"] = out["total_s"] - out["rollout_s"] - out["ppo_update_s"]
+    out["policy_and_bookkeeping_s"] = out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="GoCu/DoorKey-8x8-v0")
+    parser.add_argument("--timesteps", type=int, default=100_000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    parser.add_argument("--order", choices=["ppo-first", "gocu-first"], default="ppo-first")
+    parser.add_argument("--curiosity-kwargs", default="{}", help="JSON dict of GoalCuriosityModule keywords")
+    parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    curiosity_kwargs = json.loads(args.curiosity_kwargs)
+
+    print(f"command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}")
+    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {th.__version__}, threads {args.threads}, seed {args.seed}")
+    raw = raw_env_rate(args.env, 16, min(args.timesteps, 32_000), args.seed)
+    results = {}
+    order = ["ppo", "ppo_gocu"] if args.order == "ppo-first" else ["ppo_gocu", "ppo"]
+    for algo in order:
+        results[algo] = run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs)
+    ppo, gocu = results["ppo"], results["ppo_gocu"]
+    print(f"\n{args.env}, {args.timesteps} steps, 16 envs")
+    print(f"raw env (random actions)      {raw:8.0f} steps/s")
+    print(f"plain PPO                     {ppo['steps_per_s']:8.0f} steps/s")
+    print(f"PPO_GoCu                      {gocu['steps_per_s']:8.0f} steps/s")
+    print(f"time per step, GoCu / PPO     {ppo['steps_per_s'] / gocu['steps_per_s']:8.2f}x")
+    print("\nwhere the time goes (s)          PPO   PPO_GoCu")
+    for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "vae_training_s", "predictor_training_s", "pretrain_s", "total_s"):
+        print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}")
+    print(f"  (vae_training_s includes the pretraining's VAE epochs; pretrain_s is the whole pretraining phase; "
+          f"reward cache hit rate {gocu['cache_hit_rate']:.2f})")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"command": sys.argv, "raw_env_steps_per_s": raw, **results}, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,25 @@
+"""rl-zoo3's ``enjoy`` with ``ppo_gocu`` registered: ``python -m sb3_gocu.enjoy --algo ppo_gocu --env GoCu/DoorKey-8x8-v0 -f logs/``.
+
+Every flag is rl-zoo3's (``python -m sb3_gocu.enjoy --help``). The model is loaded by ``PPO_GoCu.load``, curiosity
+state included; the env is built from the run's saved ``config.yml``, as the zoo does.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from sb3_gocu.zoo import register_zoo
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Register ``ppo_gocu`` and run ``rl_zoo3.enjoy.enjoy()``."""
+    register_zoo()
+    if argv is not None:
+        sys.argv = [sys.argv[0], *argv]
+    from rl_zoo3.enjoy import enjoy
+
+    enjoy()
+
+
+if __name__ == "__main__":
+    main()

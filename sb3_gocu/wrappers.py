@@ -42,14 +42,36 @@ def _make_module(
     return module
 
 
-def _check_mode(mode: str, intrinsic_coef: float) -> None:
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    if not intrinsic_coef >= 0:
-        raise ValueError(f"intrinsic_coef must be >= 0, got {intrinsic_coef}")
+class _RewardReport:
+    """What both wrappers share: settings, checks, and how r_gc is reported and added."""
+
+    module: GoalCuriosityModule
+
+    def _setup_gocu(
+        self,
+        observation_space: gym.Space,
+        module: GoalCuriosityModule | None,
+        mode: str,
+        intrinsic_coef: float,
+        curiosity_kwargs: dict[str, Any] | None,
+    ) -> None:
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if not intrinsic_coef >= 0:
+            raise ValueError(f"intrinsic_coef must be >= 0, got {intrinsic_coef}")
+        self.module = _make_module(observation_space, module, curiosity_kwargs)
+        self.mode = mode
+        self.intrinsic_coef = intrinsic_coef
+
+    def _report(self, info: dict, extrinsic: float, raw: float, normalized: float) -> float:
+        """Write the three rewards into ``info`` and return the reward the algorithm sees."""
+        info["extrinsic_reward"] = float(extrinsic)
+        info["gocu_raw_reward"] = float(raw)
+        info["gocu_reward"] = float(normalized)
+        return float(extrinsic) + self.intrinsic_coef * float(normalized) if self.mode == "sum" else float(extrinsic)
 
 
-class GoCuVecEnvWrapper(VecEnvWrapper):
+class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
     """Goal-based curiosity for a whole VecEnv, batched over its envs.
 
     :param venv: the vectorised environment (with ``Monitor`` below this wrapper)
@@ -68,11 +90,8 @@ class GoCuVecEnvWrapper(VecEnvWrapper):
         intrinsic_coef: float = 1.0,
         curiosity_kwargs: dict[str, Any] | None = None,
     ) -> None:
-        _check_mode(mode, intrinsic_coef)
-        super().__init__(venv)
-        self.module = _make_module(venv.observation_space, module, curiosity_kwargs)
-        self.mode = mode
-        self.intrinsic_coef = intrinsic_coef
+        VecEnvWrapper.__init__(self, venv)
+        self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs)
         self.module.ensure_envs(self.num_envs)
 
     def reset(self) -> Any:
@@ -97,16 +116,11 @@ class GoCuVecEnvWrapper(VecEnvWrapper):
                     for i in done_idx:
                         reached[i] = infos[i]["terminal_observation"]
         raw, normalized = self.module.step(reached, dones)
-        for i, info in enumerate(infos):
-            info["extrinsic_reward"] = float(rewards[i])
-            info["gocu_raw_reward"] = float(raw[i])
-            info["gocu_reward"] = float(normalized[i])
-        if self.mode == "sum":
-            rewards = (rewards + self.intrinsic_coef * normalized).astype(np.float32)
+        rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i]) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
 
 
-class GoCuWrapper(gym.Wrapper):
+class GoCuWrapper(_RewardReport, gym.Wrapper):
     """Goal-based curiosity for one gymnasium env (rl-zoo3's ``env_wrapper``, or a ``DummyVecEnv`` of such
     envs). Several envs of one ``DummyVecEnv`` should share one module (pass the same ``module``); each
     wrapper takes an env index in it.
@@ -126,11 +140,8 @@ class GoCuWrapper(gym.Wrapper):
         intrinsic_coef: float = 1.0,
         curiosity_kwargs: dict[str, Any] | None = None,
     ) -> None:
-        _check_mode(mode, intrinsic_coef)
-        super().__init__(env)
-        self.module = _make_module(env.observation_space, module, curiosity_kwargs)
-        self.mode = mode
-        self.intrinsic_coef = intrinsic_coef
+        gym.Wrapper.__init__(self, env)
+        self._setup_gocu(env.observation_space, module, mode, intrinsic_coef, curiosity_kwargs)
         self.env_index = self.module.register_env()
         self._index = np.array([self.env_index])
 
@@ -149,12 +160,7 @@ class GoCuWrapper(gym.Wrapper):
         obs, reward, terminated, truncated, info = self.env.step(action)
         done = bool(terminated or truncated)
         raw, normalized = self.module.step(self._batch(obs), np.array([done]), self._index)
-        info["extrinsic_reward"] = float(reward)
-        info["gocu_raw_reward"] = float(raw[0])
-        info["gocu_reward"] = float(normalized[0])
-        if self.mode == "sum":
-            reward = float(reward) + self.intrinsic_coef * float(normalized[0])
-        return obs, reward, terminated, truncated, info
+        return obs, self._report(info, reward, raw[0], normalized[0]), terminated, truncated, info
 
 
 def find_gocu_wrappers(env: VecEnv | gym.Env) -> list[GoCuVecEnvWrapper | GoCuWrapper]:

@@ -17,7 +17,12 @@ restores it, so training continues where it stopped.
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, TypeVar
+import io
+import json
+import pathlib
+import pickle
+import zipfile
+from typing import Any, ClassVar, Iterable, TypeVar
 
 import numpy as np
 import torch as th
@@ -32,6 +37,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_gocu.buffers import GoCuDictRolloutBuffer, GoCuRolloutBuffer
 from sb3_gocu.callbacks import GoCuCallback
+from sb3_gocu.checkpoints import GlobalRNGState, check_model_file, read_env_state, save_model
 from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.policies import GoCuActorCriticCnnPolicy, GoCuActorCriticPolicy, GoCuMultiInputActorCriticPolicy
 from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module
@@ -81,6 +87,7 @@ class PPO_GoCu(PPO):
         self.intrinsic_episodic = intrinsic_episodic
         self.curiosity_kwargs = dict(curiosity_kwargs or {})
         self.curiosity: GoalCuriosityModule | None = None
+        self.global_rng = GlobalRNGState()
         super().__init__(policy, env, *args, **kwargs)
 
     # ------------------------------------------------------------------ set-up
@@ -151,7 +158,49 @@ class PPO_GoCu(PPO):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
-        return [*state_dicts, "curiosity"], variables
+        return [*state_dicts, "curiosity", "global_rng"], variables
+
+    def save(
+        self, path: str | pathlib.Path | io.BufferedIOBase, exclude: Iterable[str] | None = None, include: Iterable[str] | None = None, save_env: bool = False
+    ) -> None:
+        """SB3's ``save``, atomic: the zip is written to a temporary file beside ``path`` and renamed onto it, so
+        a crash never leaves a half-written model file. The file carries the curiosity module's whole state and
+        the global RNG states.
+
+        :param save_env: also pickle the training env stack into the file, for an exact resumption with
+            ``load(path, restore_env=True)`` (in-process envs only; see :mod:`sb3_gocu.checkpoints`)
+        """
+        save_model(self, path, exclude=list(exclude) if exclude else None, include=list(include) if include else None, save_env=save_env)
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfPPOGoCu],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        restore_env: bool = False,
+        **kwargs: Any,
+    ) -> SelfPPOGoCu:
+        """SB3's ``load``, with the curiosity module. A corrupt or truncated file raises a ``ValueError`` naming it.
+
+        :param restore_env: use the env stack saved in the file (``save(..., save_env=True)``) as it was at the
+            save, ``_last_obs`` included, so ``learn(..., reset_num_timesteps=False)`` continues the run
+            exactly (unpickles code from the file: only for files you wrote)
+        """
+        if restore_env and env is not None:
+            raise ValueError("give either env or restore_env=True, not both")
+        if not isinstance(path, io.IOBase):
+            path = check_model_file(path)
+        try:
+            model = super().load(path, env=env, device=device, custom_objects=custom_objects, print_system_info=print_system_info, force_reset=force_reset, **kwargs)
+        except (zipfile.BadZipFile, EOFError, pickle.UnpicklingError, json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise ValueError(f"{path}: the model file is corrupt or unreadable ({type(e).__name__}: {e})") from e
+        if restore_env:
+            model.set_env(read_env_state(path, model.curiosity), force_reset=False)
+        return model
 
     # ------------------------------------------------------------------ rollout
     def collect_rollouts(
@@ -239,6 +288,10 @@ class PPO_GoCu(PPO):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfPPOGoCu:
+        if reset_num_timesteps:
+            self.global_rng.pending = None
+        else:
+            self.global_rng.restore()  # a loaded model continues with the random numbers of the saved run
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,

@@ -130,9 +130,11 @@ def convert_ppo_gocu_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     the PPO part, :func:`convert_gocu_trial_params` for the GoCu part)."""
     from rl_zoo3.hyperparams_opt import convert_onpolicy_params
 
+    base = _configured_hyperparams()
     ppo_params = {k: v for k, v in sampled_params.items() if k not in GOCU_TRIAL_PARAMS}
     hyperparams = convert_onpolicy_params(ppo_params)
-    hyperparams.update(convert_gocu_trial_params(sampled_params, _configured_hyperparams()))
+    hyperparams["policy_kwargs"] = _merge_policy_kwargs(base.get("policy_kwargs"), hyperparams.get("policy_kwargs"), keys=None)
+    hyperparams.update(convert_gocu_trial_params(sampled_params, base))
     return hyperparams
 
 

@@ -20,9 +20,11 @@ the same episode costs a hash. None of this changes the value computed.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import math
 import time
+import warnings
 from collections import deque
 from typing import Any, Sequence
 
@@ -46,6 +48,24 @@ from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore
 def _check(condition: bool, message: str) -> None:
     if not condition:
         raise ValueError(message)
+
+
+def _cache_to_state(cache: dict[bytes, Any]) -> dict[str, th.Tensor]:
+    """A memo {key bytes: phi} or {key bytes: (reward, phi)} as tensors (loadable with weights_only=True)."""
+    keys = th.from_numpy(np.frombuffer(b"".join(cache), dtype=np.uint8).reshape(len(cache), -1 if cache else 0).copy())
+    values = list(cache.values())
+    if values and isinstance(values[0], tuple):
+        return {"keys": keys, "rewards": th.tensor(np.array([r for r, _ in values], dtype=np.float32)),
+                "phi": th.from_numpy(np.stack([np.asarray(p) for _, p in values]))}
+    return {"keys": keys, "phi": th.stack([th.as_tensor(p) for p in values]) if values else th.zeros(0, 0)}
+
+
+def _cache_from_state(state: dict[str, th.Tensor]) -> dict[bytes, Any]:
+    """Inverse of :func:`_cache_to_state`."""
+    keys = [bytes(k) for k in state["keys"].numpy()]
+    if "rewards" in state:
+        return dict(zip(keys, zip(state["rewards"].numpy(), state["phi"].numpy())))
+    return dict(zip(keys, state["phi"].clone()))
 
 
 class GoalCuriosityModule:
@@ -137,11 +157,21 @@ class GoalCuriosityModule:
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
+        for name, value in (
+            ("n_goals", n_goals), ("goal_buffer_size", goal_buffer_size), ("new_goals_per_episode", new_goals_per_episode),
+            ("max_distance", max_distance), ("predictor_batch_size", predictor_batch_size), ("predictor_epochs", predictor_epochs),
+            ("predictor_pairs", predictor_pairs), ("predictor_train_freq", predictor_train_freq), ("embed_dim", embed_dim),
+            ("latent_dim", latent_dim), ("vae_batch_size", vae_batch_size), ("vae_epochs", vae_epochs),
+            ("vae_train_freq", vae_train_freq), ("pretrain_steps", pretrain_steps), ("memory_size", memory_size),
+            ("episode_memory", episode_memory),
+        ):
+            _check(isinstance(value, (int, np.integer)) and not isinstance(value, bool), f"{name} must be an integer, got {value!r}")
         _check(goal_buffer_size >= 1, f"goal_buffer_size must be >= 1, got {goal_buffer_size}")
         _check(1 <= n_goals <= goal_buffer_size, f"n_goals (K) must be in [1, goal_buffer_size={goal_buffer_size}], got {n_goals}")
         _check(new_goals_per_episode >= 0, f"new_goals_per_episode (l) must be >= 0, got {new_goals_per_episode}")
         _check(goal_strategy in GOAL_STRATEGIES, f"goal_strategy must be one of {GOAL_STRATEGIES}, got {goal_strategy!r}")
         _check(goal_novelty >= 0, f"goal_novelty must be >= 0, got {goal_novelty}")
+        _check(math.isfinite(alpha), f"alpha must be a finite number, got {alpha}")
         _check(aggregation in AGGREGATIONS, f"aggregation (h) must be one of {AGGREGATIONS}, got {aggregation!r}")
         _check(reward_scale > 0, f"reward_scale (delta) must be > 0, got {reward_scale}")
         _check(0 <= intrinsic_gamma <= 1, f"intrinsic_gamma must be in [0, 1], got {intrinsic_gamma}")
@@ -456,6 +486,7 @@ class GoalCuriosityModule:
             _, first, counts = np.unique(flat, axis=0, return_index=True, return_counts=True)
             data = data[first]
             weights = (counts * len(counts) / counts.sum()).astype(np.float32)
+        snapshot = self._snapshot(self.vae, self.vae_optimizer)
         self.vae.train()
         losses, skipped = [], 0
         n = len(data)
@@ -471,9 +502,13 @@ class GoalCuriosityModule:
                     continue
                 self.vae_optimizer.zero_grad()
                 loss.backward()
+                if not self._grads_finite(self.vae):
+                    skipped += 1
+                    continue
                 self.vae_optimizer.step()
                 losses.append(loss.item())
         self.vae.eval()
+        self._guard_update("vae", self.vae, self.vae_optimizer, snapshot, skipped)
         self._phi_cache.clear()
         self.goal_buffer.refresh(self.embed)
         self.trajectories.clear()  # stored embeddings belong to the old encoder
@@ -507,6 +542,8 @@ class GoalCuriosityModule:
         t0 = time.perf_counter()
         phi_s, phi_g, dist = self.trajectories.sample_pairs(self.predictor_pairs, self.max_distance, self.rng)
         self.last_predictor_update = self.n_recorded_steps
+        keep = th.isfinite(phi_s).all(1) & th.isfinite(phi_g).all(1)  # a broken VAE's embeddings teach nothing
+        phi_s, phi_g, dist = phi_s[keep], phi_g[keep], dist[keep]
         if len(phi_s) < 2:
             return {}
         phi_s, phi_g, dist = phi_s.to(self.device), phi_g.to(self.device), dist.to(self.device)
@@ -515,7 +552,8 @@ class GoalCuriosityModule:
             p_skill = mastered_probability(
                 complexity_score(prior, dist, self.prior_weight, self.distance_weight), self.label_threshold, self.label_slope
             )
-            target = p_skill if self.soft_labels else th.bernoulli(p_skill, generator=self._torch_gen)
+            target = p_skill if self.soft_labels else th.bernoulli(p_skill.nan_to_num(0.5), generator=self._torch_gen)
+        snapshot = self._snapshot(self.predictor, self.predictor_optimizer)
         self.predictor.train()
         n = len(phi_s)
         losses, accs, skipped = [], [], 0
@@ -533,10 +571,14 @@ class GoalCuriosityModule:
                     continue
                 self.predictor_optimizer.zero_grad()
                 loss.backward()
+                if not self._grads_finite(self.predictor):
+                    skipped += 1
+                    continue
                 self.predictor_optimizer.step()
                 losses.append(loss.item())
                 accs.append(((logp[:, 1] > logp[:, 0]) == (t > 0.5)).float().mean().item())
         self.predictor.eval()
+        self._guard_update("predictor", self.predictor, self.predictor_optimizer, snapshot, skipped)
         self._folded = self.predictor.fold()
         self._refresh_active_goals()
         dt = time.perf_counter() - t0
@@ -554,13 +596,14 @@ class GoalCuriosityModule:
         return out
 
     def maybe_train(self) -> dict[str, float]:
-        """Add goals from finished episodes, and retrain the VAE every ``vae_train_freq`` and the predictor
-        every ``predictor_train_freq`` recorded steps. Call it between rollouts."""
+        """Add goals from finished episodes, and retrain the predictor every ``predictor_train_freq`` and the
+        VAE every ``vae_train_freq`` recorded steps. Call it between rollouts."""
         out: dict[str, float] = {"goals_added": float(self.add_finished_episode_goals())}
-        if self.n_recorded_steps - self.last_vae_update >= self.vae_train_freq:
-            out.update(self.train_vae())
+        # predictor first: a VAE update makes the stored embeddings (the predictor's pairs) stale
         if self.n_recorded_steps - self.last_predictor_update >= self.predictor_train_freq:
             out.update(self.train_predictor())
+        if self.n_recorded_steps - self.last_vae_update >= self.vae_train_freq:
+            out.update(self.train_vae())
         return out
 
     def pop_reward_stats(self) -> dict[str, float]:
@@ -580,6 +623,49 @@ class GoalCuriosityModule:
         self._reward_sum = self._reward_sq_sum = 0.0
         self._reward_count = self._cache_hits = self._cache_lookups = 0
         return out
+
+    # ------------------------------------------------------------------ non-finite guards
+    @staticmethod
+    def _snapshot(network: th.nn.Module, optimizer: th.optim.Optimizer) -> tuple[dict, dict]:
+        """Copies of a network's and its optimiser's state, to roll a whole update back."""
+        return copy.deepcopy(network.state_dict()), copy.deepcopy(optimizer.state_dict())
+
+    @staticmethod
+    def _grads_finite(network: th.nn.Module) -> bool:
+        """Whether every gradient of ``network`` is finite (a step on a NaN/inf gradient is skipped)."""
+        grads = [p.grad for p in network.parameters() if p.grad is not None]
+        return not grads or bool(th.isfinite(th.nn.utils.get_total_norm(grads, norm_type=float("inf"))))
+
+    @staticmethod
+    def nonfinite_entries(state: dict[str, th.Tensor]) -> list[str]:
+        """Names of the floating-point tensors of a state_dict that hold a NaN or an infinity."""
+        return [k for k, v in state.items() if isinstance(v, th.Tensor) and v.is_floating_point() and not bool(th.isfinite(v).all())]
+
+    def _guard_update(self, name: str, network: th.nn.Module, optimizer: th.optim.Optimizer, snapshot: tuple[dict, dict], skipped: int) -> bool:
+        """After an update of ``network``: count its skipped steps and, if its parameters or buffers are no longer
+        finite, restore the state of before the update (network and optimiser).
+
+        Counted in :attr:`stats` (logged as ``gocu/...`` by the callback): ``{name}_skipped_updates_total``
+        (minibatch steps skipped for a non-finite loss or gradient, since construction), ``{name}_restored_updates``
+        (updates rolled back) and ``{name}_nonfinite_parameters`` (tensors still non-finite: the network was
+        broken before the update, e.g. set by hand; its rewards are then 0 and counted in ``nonfinite_rewards``).
+
+        :return: whether the update was rolled back
+        """
+        self.stats[f"{name}_skipped_updates_total"] = self.stats.get(f"{name}_skipped_updates_total", 0.0) + skipped
+        bad = self.nonfinite_entries(network.state_dict())
+        self.stats[f"{name}_nonfinite_parameters"] = 0.0
+        if not bad:
+            return False
+        if self.nonfinite_entries(snapshot[0]):
+            self.stats[f"{name}_nonfinite_parameters"] = float(len(bad))
+            warnings.warn(f"GoCu: the {name} holds non-finite values in {bad[:3]} from before this update; nothing finite to restore")
+            return False
+        network.load_state_dict(snapshot[0])
+        optimizer.load_state_dict(snapshot[1])
+        self.stats[f"{name}_restored_updates"] = self.stats.get(f"{name}_restored_updates", 0.0) + 1
+        warnings.warn(f"GoCu: a {name} update made {bad[:3]} non-finite; the update was rolled back")
+        return True
 
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict[str, Any]:
@@ -603,7 +689,12 @@ class GoalCuriosityModule:
                 "episodes": [th.from_numpy(np.stack(ep)) if len(ep) else th.zeros(0) for ep in self._episodes],
                 "finished_episodes": [th.from_numpy(ep) for ep in self.finished_episodes],
                 "next_episode_id": self._next_episode_id,
+                # memoised values: recomputing them in other batches can change the last bits (float sums are not
+                # batch-invariant), so they are saved for a bit-exact resumption
+                "goal_parts": self._goal_parts.clone(),
+                "reward_cache": [_cache_to_state(c) for c in self._reward_cache],
             },
+            "phi_cache": _cache_to_state(self._phi_cache),
             "counters": {
                 "pretrained": self.pretrained,
                 "n_recorded_steps": self.n_recorded_steps,
@@ -617,6 +708,10 @@ class GoalCuriosityModule:
         missing = {"vae", "predictor", "goal_buffer", "memory", "normalizer", "counters"} - set(state)
         if missing:
             raise ValueError(f"curiosity state is missing {sorted(missing)}: not a GoalCuriosityModule state_dict")
+        for net in ("vae", "predictor"):
+            bad = self.nonfinite_entries(state[net])
+            if bad:
+                raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
         self.vae.load_state_dict(state["vae"], strict=strict)
         self._phi_cache.clear()
         self.predictor.load_state_dict(state["predictor"], strict=strict)
@@ -665,3 +760,9 @@ class GoalCuriosityModule:
             self.finished_episodes.extend(ep.numpy() for ep in envs["finished_episodes"])
             self.trajectories.load_state_dict(state["trajectories"])
             self._refresh_active_goals()
+            if "goal_parts" in envs:
+                self._goal_parts[:] = envs["goal_parts"]
+            for cache, saved in zip(self._reward_cache, envs.get("reward_cache", [])):
+                cache.update(_cache_from_state(saved))
+        if "phi_cache" in state:
+            self._phi_cache.update(_cache_from_state(state["phi_cache"]))

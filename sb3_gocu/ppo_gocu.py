@@ -85,6 +85,11 @@ class PPO_GoCu(PPO):
             raise ValueError(f"intrinsic_coef (sigma) must be >= 0, got {intrinsic_coef}")
         self.intrinsic_coef = intrinsic_coef
         self.intrinsic_episodic = intrinsic_episodic
+        if curiosity_kwargs is not None and not isinstance(curiosity_kwargs, dict):
+            raise TypeError(
+                f"curiosity_kwargs must be a dict of GoalCuriosityModule keywords, got {type(curiosity_kwargs).__name__} "
+                f"{curiosity_kwargs!r} (in an rl-zoo3 YAML file write it as a mapping, not a 'dict(...)' string)"
+            )
         self.curiosity_kwargs = dict(curiosity_kwargs or {})
         self.curiosity: GoalCuriosityModule | None = None
         self.global_rng = GlobalRNGState()

@@ -62,9 +62,12 @@ class GoCuCallback(BaseCallback):
                 env.step(np.array([self.model.action_space.sample() for _ in range(env.num_envs)]))
                 self.module.add_finished_episode_goals()
         stats = self.module.pretrain()
-        self.module.add_finished_episode_goals()
+        # the reset closes the random episodes still running (on large grids none has ended yet): their states
+        # become goals too, embedded by the pretrained VAE, and every env then draws its first K goals
         self.model._last_obs = env.reset()  # type: ignore[assignment]
         self.model._last_episode_starts = np.ones((env.num_envs,), dtype=bool)
+        self.module.add_finished_episode_goals()
+        self.module.sample_goals(np.arange(self.module.n_envs))
         self.pretrain_time = time.perf_counter() - t0
         if self.verbose:
             print(

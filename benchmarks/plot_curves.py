@@ -1,0 +1,135 @@
+"""Learning curves from the CSVs of ``benchmarks/sample_efficiency.py``: PPO and PPO_GoCu on one figure.
+
+    python benchmarks/plot_curves.py benchmarks/out/doorkey8                      # -> benchmarks/out/doorkey8/curves.png
+    python benchmarks/plot_curves.py benchmarks/out/doorkey8 --band std --metric success_rate --out sr.png
+
+x = env steps, y = mean extrinsic return of the last 100 episodes (``--metric`` picks another CSV column). For
+each algo: the mean over seeds and a band (``--band minmax``: min to max over seeds, the default; ``std``:
+mean +- std). Seeds are put on a common step grid by linear interpolation; at a step that some seed has not
+reached yet (a run still going), only the seeds that reached it count, so the tail of a curve may rest on
+fewer seeds (the legend gives the number of seeds). Rows before a run's first finished episode are skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import pathlib
+import re
+from typing import Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+LABELS = {"ppo": "PPO", "ppo_gocu": "PPO + GoCu"}
+COLORS = {"ppo": "tab:blue", "ppo_gocu": "tab:red"}
+YLABELS = {
+    "mean_return": "mean extrinsic return (last 100 episodes)",
+    "success_rate": "success rate (last 100 episodes)",
+    "intrinsic_mean": "mean raw intrinsic reward r_gc",
+}
+
+
+def load_runs(directory: pathlib.Path, metric: str) -> dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]:
+    """{algo: {seed: (steps, values)}} of the ``<algo>_seed<seed>.csv`` files in ``directory``."""
+    runs: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+    for path in sorted(directory.glob("*_seed*.csv")):
+        m = re.fullmatch(r"(.+)_seed(\d+)\.csv", path.name)
+        if not m:
+            continue
+        steps, values = [], []
+        with open(path, newline="") as f:
+            for row in csv.DictReader(f):
+                if row.get(metric, "") in ("", "nan"):
+                    continue
+                steps.append(float(row["steps"]))
+                values.append(float(row[metric]))
+        if steps:
+            runs.setdefault(m.group(1), {})[int(m.group(2))] = (np.asarray(steps), np.asarray(values))
+    return runs
+
+
+def aggregate(seed_curves: Sequence[tuple[np.ndarray, np.ndarray]], band: str, n_points: int = 400) -> tuple[np.ndarray, ...]:
+    """Common grid x, mean, band low, band high, and the number of seeds at each x."""
+    start = min(s[0] for s, _ in seed_curves)
+    stop = max(s[-1] for s, _ in seed_curves)
+    grid = np.unique(np.concatenate([s for s, _ in seed_curves]))
+    if len(grid) > n_points:
+        grid = np.linspace(start, stop, n_points)
+    ys = np.full((len(seed_curves), len(grid)), np.nan)
+    for i, (s, v) in enumerate(seed_curves):
+        inside = (grid >= s[0]) & (grid <= s[-1])
+        ys[i, inside] = np.interp(grid[inside], s, v)
+    count = np.isfinite(ys).sum(0)
+    keep = count > 0
+    grid, ys, count = grid[keep], ys[:, keep], count[keep]
+    with np.errstate(all="ignore"):
+        mean = np.nanmean(ys, 0)
+        if band == "std":
+            sd = np.nanstd(ys, 0)
+            lo, hi = mean - sd, mean + sd
+        else:
+            lo, hi = np.nanmin(ys, 0), np.nanmax(ys, 0)
+    return grid, mean, lo, hi, count
+
+
+def env_name(directory: pathlib.Path) -> str | None:
+    for state in sorted((directory / "checkpoints").glob("*/state_*.json")):
+        try:
+            return json.loads(state.read_text())["config"]["env"]
+        except (OSError, ValueError, KeyError):
+            continue
+    return None
+
+
+def plot(directory: str | pathlib.Path, out: str | pathlib.Path | None = None, metric: str = "mean_return", band: str = "minmax",
+         title: str | None = None, threshold: float | None = 0.9) -> pathlib.Path:
+    """Draw the curves of the runs in ``directory`` and save a PNG. :return: the PNG's path"""
+    directory = pathlib.Path(directory)
+    runs = load_runs(directory, metric)
+    if not runs:
+        raise SystemExit(f"no <algo>_seed<seed>.csv with a '{metric}' column in {directory}")
+    out = pathlib.Path(out) if out is not None else directory / ("curves.png" if metric == "mean_return" else f"curves_{metric}.png")
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+    order = [a for a in LABELS if a in runs] + sorted(a for a in runs if a not in LABELS)
+    for algo in order:
+        seeds = sorted(runs[algo])
+        x, mean, lo, hi, _ = aggregate([runs[algo][s] for s in seeds], band)
+        color = COLORS.get(algo)
+        label = f"{LABELS.get(algo, algo)} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})"
+        (line,) = ax.plot(x, mean, color=color, lw=1.8, label=label)
+        ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
+    if threshold is not None and metric == "mean_return":
+        ax.axhline(threshold, color="grey", ls=":", lw=1)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel(YLABELS.get(metric, metric))
+    ax.set_title(title or f"{env_name(directory) or directory.name}: mean over seeds, band = {'min-max' if band == 'minmax' else '+- std'}")
+    ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 0))
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> pathlib.Path:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("directory", help="the --out dir of sample_efficiency.py")
+    p.add_argument("--out", default=None, help="PNG path (default <directory>/curves.png)")
+    p.add_argument("--metric", default="mean_return", help="CSV column on the y axis (mean_return, success_rate, intrinsic_mean, ...)")
+    p.add_argument("--band", choices=["minmax", "std"], default="minmax")
+    p.add_argument("--title", default=None)
+    args = p.parse_args(argv)
+    path = plot(args.directory, args.out, args.metric, args.band, args.title)
+    print(f"wrote {path}")
+    return path
+
+
+if __name__ == "__main__":
+    main()

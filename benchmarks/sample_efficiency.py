@@ -1,0 +1,575 @@
+"""Sample efficiency of PPO_GoCu against plain PPO: learning curves over several seeds, resumable.
+
+    python benchmarks/sample_efficiency.py --env GoCu/DoorKey-8x8-v0 --timesteps 800000 --seeds 0 1 2 \\
+        --out benchmarks/out/doorkey8
+    python benchmarks/sample_efficiency.py --out benchmarks/out/doorkey8 --summary-only
+    python benchmarks/plot_curves.py benchmarks/out/doorkey8
+
+Both algorithms get the SPEC's PPO settings (16 envs, n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
+gamma 0.99, vf 0.5, clip 0.2) and the paper's CNN (plain PPO: ``features_extractor_class=PaperCNN``;
+PPO_GoCu's CnnPolicy picks it itself). PPO_GoCu uses the module's defaults (the paper's settings) unless
+``--goal-strategy``, ``--n-goals`` or ``--curiosity-kwargs`` say otherwise.
+
+Runs execute one at a time (seed-major: seed 0 of every algo, then seed 1, ...), each writing
+``<out>/<algo>_seed<seed>.csv`` with one row per rollout end:
+
+* ``steps``: env steps so far (all envs); ``episodes``: episodes finished so far;
+* ``window_episodes``: episodes in the return window (at most ``--window``, 100);
+* ``mean_return``: mean extrinsic return of the last ``--window`` episodes (Monitor's returns: the
+  GoCu wrapper sits above Monitor, so they are extrinsic); ``success_rate``: fraction of them with return > 0;
+* ``intrinsic_mean`` / ``intrinsic_std``: mean and std of the raw r_gc (eq 13, ``infos["gocu_raw_reward"]``)
+  over the rollout's steps, ``intrinsic_norm_mean``: mean of the normalised r_gc (eq 14), empty for PPO;
+* ``wall_time_s``: training wall time of the run so far (summed over resumed sessions; the time between
+  the last checkpoint and a crash is not counted, those steps are redone); ``fps``: steps/s of that rollout.
+
+Checkpoints. Every ``--checkpoint-freq`` env steps (at the start of the next rollout, after the PPO update
+and the curiosity update, where the whole training state is consistent) and at the end, the run writes
+``<out>/checkpoints/<algo>_seed<seed>/model_<steps>.zip`` (the model; PPO_GoCu's carries the curiosity
+module's whole state and the global RNG states) and then ``state_<steps>.json`` (the CSV rows so far, the
+episode-return window, the wall time, the run's configuration), each atomically (temporary file, fsync,
+``os.replace``); the ``--keep-checkpoints`` (2) newest pairs are kept (about 90 MB each for PPO_GoCu with
+the paper's settings, 6 MB for PPO). Run the same command again after a crash and each run
+continues from its newest complete checkpoint (``load(..., env=...)`` + ``learn(..., reset_num_timesteps=False)``)
+and finished runs are skipped; a larger ``--timesteps`` extends finished runs. On resumption the envs are
+fresh (seeded with ``seed + steps``): episodes in progress at the checkpoint are not finished, so the
+continuation is statistically, not bit-for-bit, the uninterrupted run. A checkpoint written with other
+settings (env, n_envs, PPO or curiosity settings) is refused; ``--restart`` discards it.
+
+The summary (printed and written to ``<out>/summary.md``) gives per algo the env steps to a mean return of
+``--threshold`` (0.9: the first rollout end where the last-100 mean is >= 0.9, counted only once the window
+holds ``--min-window`` episodes) and the final success rate, as mean +- std over seeds, with the command,
+seeds, machine and threads. ``--summary-only`` re-summarises the CSVs in ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import os
+import pathlib
+import platform
+import re
+import shlex
+import shutil
+import sys
+import time
+import zipfile
+from collections import deque
+from typing import Any, Sequence
+
+import numpy as np
+import torch as th
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+
+import sb3_gocu  # noqa: F401  (registers the GoCu ids)
+from sb3_gocu import PaperCNN, PPO_GoCu
+from sb3_gocu.curiosity.goals import GOAL_STRATEGIES
+
+ALGOS = ("ppo", "ppo_gocu")
+PPO_SETTINGS: dict[str, Any] = dict(
+    n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2
+)
+N_ENVS = 16
+COLUMNS = (
+    "algo", "seed", "steps", "episodes", "window_episodes", "mean_return", "success_rate",
+    "intrinsic_mean", "intrinsic_std", "intrinsic_norm_mean", "wall_time_s", "fps",
+)
+
+
+# ---------------------------------------------------------------------------------------------- files
+def atomic_write_bytes(path: pathlib.Path, data: bytes, fsync: bool = True) -> None:
+    """Write ``data`` to ``path`` all at once or not at all (temporary file beside it, then ``os.replace``)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            if fsync:
+                f.flush()
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def csv_bytes(rows: Sequence[dict[str, Any]]) -> bytes:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: _fmt(row.get(k)) for k in COLUMNS})
+    return buf.getvalue().encode()
+
+
+def _fmt(v: Any) -> Any:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return ""
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return v
+
+
+def read_csv(path: pathlib.Path) -> list[dict[str, Any]]:
+    """Rows of a run's CSV with numbers parsed (empty cells -> nan)."""
+    rows = []
+    with open(path, newline="") as f:
+        for raw in csv.DictReader(f):
+            row: dict[str, Any] = {}
+            for k, v in raw.items():
+                if k == "algo":
+                    row[k] = v
+                elif k in ("seed", "steps", "episodes", "window_episodes"):
+                    row[k] = int(float(v)) if v != "" else 0
+                else:
+                    row[k] = float(v) if v != "" else float("nan")
+            rows.append(row)
+    return rows
+
+
+def run_name(algo: str, seed: int) -> str:
+    return f"{algo}_seed{seed}"
+
+
+# ---------------------------------------------------------------------------------------------- the run
+class SampleEfficiencyCallback(BaseCallback):
+    """Records one CSV row per rollout end and writes checkpoints at rollout starts.
+
+    :param run: the :class:`Run` it reports to
+    """
+
+    def __init__(self, run: "Run") -> None:
+        super().__init__(0)
+        self.run = run
+        self._sum = self._sq = self._norm = 0.0
+        self._count = 0
+        self._t_rollout = time.perf_counter()
+        self._steps_rollout = 0
+
+    def _on_rollout_start(self) -> None:
+        run = self.run
+        if self.num_timesteps - run.last_checkpoint >= run.checkpoint_freq:
+            run.checkpoint(self.model)
+        self._sum = self._sq = self._norm = 0.0
+        self._count = 0
+        self._t_rollout = time.perf_counter()
+        self._steps_rollout = self.num_timesteps
+
+    def _on_step(self) -> bool:
+        for info in self.locals["infos"]:
+            ep = info.get("episode")
+            if ep is not None:
+                self.run.add_episode(float(ep["r"]))
+            raw = info.get("gocu_raw_reward")
+            if raw is not None:
+                self._sum += raw
+                self._sq += raw * raw
+                self._norm += info.get("gocu_reward", float("nan"))
+                self._count += 1
+        return True
+
+    def _on_rollout_end(self) -> None:
+        if self._count:
+            mean = self._sum / self._count
+            std = math.sqrt(max(0.0, self._sq / self._count - mean * mean))
+            norm = self._norm / self._count
+        else:
+            mean = std = norm = float("nan")
+        dt = time.perf_counter() - self._t_rollout
+        self.run.add_row(self.num_timesteps, mean, std, norm, (self.num_timesteps - self._steps_rollout) / max(dt, 1e-9))
+
+
+class Run:
+    """One (algo, seed) run: builds or resumes the model, trains it, keeps its CSV and checkpoints."""
+
+    def __init__(self, args: argparse.Namespace, algo: str, seed: int, command: str) -> None:
+        self.args = args
+        self.algo = algo
+        self.seed = seed
+        self.command = command
+        self.name = run_name(algo, seed)
+        self.out = pathlib.Path(args.out)
+        self.csv_path = self.out / f"{self.name}.csv"
+        self.ckpt_dir = self.out / "checkpoints" / self.name
+        rollout = args.n_envs * args.n_steps
+        # checkpoints happen at rollout boundaries
+        self.checkpoint_freq = max(rollout, int(math.ceil(args.checkpoint_freq / rollout)) * rollout)
+        self.config = run_config(args, algo, seed)
+        self.rows: list[dict[str, Any]] = []
+        self.window: deque = deque(maxlen=args.window)
+        self.episodes = 0
+        self.wall_before = 0.0
+        self.session_start = time.perf_counter()
+        self.last_checkpoint = 0
+        self.resumed_from: list[int] = []
+        self.commands: list[str] = [command]
+        self.done = False
+
+    # ------------------------------------------------------------ recording
+    def add_episode(self, ret: float) -> None:
+        self.window.append(ret)
+        self.episodes += 1
+
+    def wall_time(self) -> float:
+        return self.wall_before + time.perf_counter() - self.session_start
+
+    def add_row(self, steps: int, intrinsic_mean: float, intrinsic_std: float, intrinsic_norm: float, fps: float) -> None:
+        w = np.asarray(self.window, dtype=np.float64)
+        row = {
+            "algo": self.algo,
+            "seed": self.seed,
+            "steps": int(steps),
+            "episodes": self.episodes,
+            "window_episodes": len(w),
+            "mean_return": float(w.mean()) if len(w) else float("nan"),
+            "success_rate": float((w > 0).mean()) if len(w) else float("nan"),
+            "intrinsic_mean": intrinsic_mean,
+            "intrinsic_std": intrinsic_std,
+            "intrinsic_norm_mean": intrinsic_norm,
+            "wall_time_s": self.wall_time(),
+            "fps": fps,
+        }
+        self.rows.append(row)
+        # the live CSV (for watching a run); the checkpoint's copy is the one a resumption trusts
+        atomic_write_bytes(self.csv_path, csv_bytes(self.rows), fsync=False)
+        n_rollouts = len(self.rows)
+        if self.args.verbose and (n_rollouts % self.args.print_every == 0 or steps >= self.args.timesteps):
+            print(
+                f"[{self.name}] {steps:>9d}/{self.args.timesteps} steps  {self.episodes:6d} episodes  "
+                f"mean return {row['mean_return']:.3f}  success {row['success_rate']:.2f}  "
+                f"r_gc {intrinsic_mean:.4f}  {fps:5.0f} steps/s  {row['wall_time_s'] / 60:6.1f} min",
+                flush=True,
+            )
+
+    # ------------------------------------------------------------ checkpoints
+    def state(self, steps: int) -> dict[str, Any]:
+        return {
+            "config": self.config,
+            "steps": int(steps),
+            "episodes": self.episodes,
+            "window": list(self.window),
+            "wall_time_s": self.wall_time(),
+            "rows": self.rows,
+            "resumed_from": self.resumed_from,
+            "done": self.done,
+            "commands": self.commands,
+            "machine": machine_line(self.args.threads),
+        }
+
+    def checkpoint(self, model: Any) -> None:
+        steps = int(model.num_timesteps)
+        t0 = time.perf_counter()
+        buf = io.BytesIO()
+        model.save(buf)
+        atomic_write_bytes(self.ckpt_dir / f"model_{steps}.zip", buf.getvalue())
+        # the state names the model file: written second, so a state file always has its model
+        atomic_write_bytes(self.ckpt_dir / f"state_{steps}.json", json.dumps(self.state(steps), allow_nan=True).encode())
+        atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
+        self.last_checkpoint = steps
+        for old_steps, _ in list_checkpoints(self.ckpt_dir)[: -self.args.keep_checkpoints]:
+            (self.ckpt_dir / f"state_{old_steps}.json").unlink(missing_ok=True)
+            (self.ckpt_dir / f"model_{old_steps}.zip").unlink(missing_ok=True)
+        if self.args.verbose:
+            print(f"[{self.name}] checkpoint at {steps} steps ({time.perf_counter() - t0:.1f} s)", flush=True)
+
+    def _restore(self) -> tuple[int, pathlib.Path] | None:
+        """Read the newest complete checkpoint of this run, if any. :return: (steps, model path)"""
+        self.commands = [self.command]
+        if self.args.restart and self.ckpt_dir.exists():
+            shutil.rmtree(self.ckpt_dir)
+        for steps, state_path in reversed(list_checkpoints(self.ckpt_dir)):
+            model_path = self.ckpt_dir / f"model_{steps}.zip"
+            try:
+                state = json.loads(state_path.read_text())
+            except (OSError, ValueError) as e:
+                print(f"[{self.name}] skipping unreadable {state_path.name}: {e}")
+                continue
+            if not model_readable(model_path):
+                print(f"[{self.name}] skipping checkpoint {steps}: {model_path.name} is missing or corrupt")
+                continue
+            if state["config"] != self.config:
+                diff = {k: (state["config"].get(k), v) for k, v in self.config.items() if state["config"].get(k) != v}
+                raise SystemExit(
+                    f"[{self.name}] {state_path} was written with other settings {diff} (checkpoint, now): "
+                    "use another --out, the same settings, or --restart to discard it"
+                )
+            self.rows = state["rows"]
+            self.window = deque(state["window"], maxlen=self.args.window)
+            self.episodes = int(state["episodes"])
+            self.wall_before = float(state["wall_time_s"])
+            self.resumed_from = list(state.get("resumed_from", []))
+            self.done = bool(state.get("done", False))
+            self.commands = list(state.get("commands", [])) + ([self.command] if self.command not in state.get("commands", []) else [])
+            self.last_checkpoint = steps
+            return steps, model_path
+        return None
+
+    # ------------------------------------------------------------ training
+    def make_env(self, seed: int) -> Any:
+        return make_vec_env(self.args.env, n_envs=self.args.n_envs, seed=seed)
+
+    def build(self) -> Any:
+        a = self.args
+        ppo = ppo_settings(a)
+        if self.algo == "ppo":
+            return PPO("CnnPolicy", self.make_env(self.seed), seed=self.seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **ppo)
+        return PPO_GoCu(
+            "CnnPolicy", self.make_env(self.seed), seed=self.seed, intrinsic_coef=a.intrinsic_coef,
+            curiosity_kwargs=curiosity_kwargs(a), verbose=0, **ppo,
+        )
+
+    def execute(self) -> None:
+        restored = self._restore()
+        if restored is not None:
+            steps, model_path = restored
+            if steps >= self.args.timesteps:
+                print(f"[{self.name}] already at {steps} >= {self.args.timesteps} steps: skipped")
+                atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
+                return
+            cls = PPO if self.algo == "ppo" else PPO_GoCu
+            model = cls.load(model_path, env=self.make_env(self.seed + steps), device="cpu")
+            self.resumed_from.append(steps)
+            self.done = False
+            atomic_write_bytes(self.csv_path, csv_bytes(self.rows))  # drop rows written after the checkpoint
+            print(f"[{self.name}] resuming from {model_path} ({steps} steps, {self.episodes} episodes)", flush=True)
+            remaining, reset = self.args.timesteps - steps, False
+        else:
+            if self.csv_path.exists():
+                self.csv_path.unlink()
+            model = self.build()
+            remaining, reset = self.args.timesteps, True
+            print(f"[{self.name}] new run: {self.args.env}, {self.args.timesteps} steps", flush=True)
+        self.session_start = time.perf_counter()
+        model.learn(remaining, callback=SampleEfficiencyCallback(self), reset_num_timesteps=reset)
+        self.done = True
+        self.checkpoint(model)
+        model.env.close()
+
+
+def model_readable(path: pathlib.Path) -> bool:
+    """Whether a model zip exists and every member passes its CRC check."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return archive.testzip() is None and "data" in archive.namelist()
+    except (OSError, zipfile.BadZipFile, EOFError, ValueError):
+        return False
+
+
+def list_checkpoints(ckpt_dir: pathlib.Path) -> list[tuple[int, pathlib.Path]]:
+    """(steps, state file) of a run's checkpoints, oldest first."""
+    out = []
+    if ckpt_dir.is_dir():
+        for f in ckpt_dir.glob("state_*.json"):
+            m = re.fullmatch(r"state_(\d+)\.json", f.name)
+            if m:
+                out.append((int(m.group(1)), f))
+    return sorted(out)
+
+
+def ppo_settings(args: argparse.Namespace) -> dict[str, Any]:
+    return {**PPO_SETTINGS, "n_steps": args.n_steps, "batch_size": args.batch_size}
+
+
+def curiosity_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    kw = dict(json.loads(args.curiosity_kwargs))
+    if args.goal_strategy is not None:
+        kw["goal_strategy"] = args.goal_strategy
+    if args.n_goals is not None:
+        kw["n_goals"] = args.n_goals
+    return kw
+
+
+def run_config(args: argparse.Namespace, algo: str, seed: int) -> dict[str, Any]:
+    """What a checkpoint must agree with to be resumed (the step budget is not part of it: it can grow)."""
+    cfg: dict[str, Any] = {"algo": algo, "seed": seed, "env": args.env, "n_envs": args.n_envs, "ppo": ppo_settings(args), "window": args.window}
+    if algo == "ppo_gocu":
+        cfg["curiosity_kwargs"] = curiosity_kwargs(args)
+        cfg["intrinsic_coef"] = args.intrinsic_coef
+    return json.loads(json.dumps(cfg))
+
+
+# ---------------------------------------------------------------------------------------------- summary
+def machine_line(threads: int) -> str:
+    cpu = platform.processor() or ""
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return (
+        f"{platform.machine()} {cpu}, {os.cpu_count()} CPUs, Python {platform.python_version()}, torch {th.__version__}, "
+        f"torch threads {threads}"
+    )
+
+
+def steps_to_threshold(rows: Sequence[dict[str, Any]], threshold: float, min_window: int) -> int | None:
+    """First rollout-end step where the windowed mean return is >= threshold (window holding >= min_window episodes)."""
+    for r in rows:
+        if r["window_episodes"] >= min_window and r["mean_return"] >= threshold:
+            return int(r["steps"])
+    return None
+
+
+def _pm(values: Sequence[float], fmt: str) -> str:
+    v = np.asarray(values, dtype=np.float64)
+    if len(v) == 0:
+        return "-"
+    return f"{format(v.mean(), fmt)} +- {format(v.std(), fmt)}"
+
+
+def summarize(out: pathlib.Path, threshold: float, min_window: int, algos: Sequence[str] | None = None) -> tuple[str, dict[str, Any]]:
+    """Summary table of the CSVs in ``out`` (markdown) and the figures behind it."""
+    runs: dict[str, dict[int, list[dict[str, Any]]]] = {}
+    for path in sorted(out.glob("*_seed*.csv")):
+        m = re.fullmatch(r"(.+)_seed(\d+)\.csv", path.name)
+        if not m:
+            continue
+        rows = read_csv(path)
+        if rows:
+            runs.setdefault(m.group(1), {})[int(m.group(2))] = rows
+    order = [a for a in (algos or ALGOS) if a in runs] + sorted(a for a in runs if a not in (algos or ALGOS))
+    lines = [
+        f"| algo | seeds | final steps | steps to mean return >= {threshold} | final success rate | final mean return | wall time (min) |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    figures: dict[str, Any] = {}
+    for algo in order:
+        seeds = sorted(runs[algo])
+        per_seed = {s: runs[algo][s] for s in seeds}
+        reached = {s: steps_to_threshold(r, threshold, min_window) for s, r in per_seed.items()}
+        hit = [v for v in reached.values() if v is not None]
+        final = [r[-1] for r in per_seed.values()]
+        if not hit:
+            to_thr = "not reached"
+        else:
+            to_thr = f"{_pm(hit, ',.0f')} ({len(hit)}/{len(seeds)} seeds reached)"
+            if len(hit) < len(seeds):
+                to_thr += "; " + ", ".join(f"seed {s}: not reached" for s, v in reached.items() if v is None)
+        final_steps = sorted({int(r['steps']) for r in final})
+        lines.append(
+            f"| {algo} | {', '.join(map(str, seeds))} | {', '.join(f'{s:,}' for s in final_steps)} | {to_thr} | "
+            f"{_pm([r['success_rate'] for r in final], '.3f')} | {_pm([r['mean_return'] for r in final], '.3f')} | "
+            f"{_pm([r['wall_time_s'] / 60 for r in final], '.1f')} |"
+        )
+        figures[algo] = {
+            "seeds": seeds,
+            "steps_to_threshold": reached,
+            "final_success_rate": [r["success_rate"] for r in final],
+            "final_mean_return": [r["mean_return"] for r in final],
+            "final_steps": [int(r["steps"]) for r in final],
+        }
+    return "\n".join(lines), figures
+
+
+def recorded(out: pathlib.Path) -> tuple[list[str], list[str], str | None]:
+    """Commands and machines recorded in the runs' newest checkpoints, and their env id."""
+    cmds: list[str] = []
+    machines: list[str] = []
+    env = None
+    for d in sorted((out / "checkpoints").glob("*")):
+        ckpts = list_checkpoints(d)
+        if not ckpts:
+            continue
+        try:
+            state = json.loads(ckpts[-1][1].read_text())
+        except (OSError, ValueError):
+            continue
+        cmds += [c for c in state.get("commands", []) if c not in cmds]
+        if state.get("machine") and state["machine"] not in machines:
+            machines.append(state["machine"])
+        env = env or state.get("config", {}).get("env")
+    return cmds, machines, env
+
+
+def write_summary(args: argparse.Namespace, command: str) -> str:
+    out = pathlib.Path(args.out)
+    table, _ = summarize(out, args.threshold, args.min_window, args.algos)
+    cmds, machines, env = recorded(out)
+    seeds = sorted({int(m.group(1)) for p in out.glob("*_seed*.csv") if (m := re.search(r"_seed(\d+)\.csv$", p.name))})
+    text = "\n".join(
+        [
+            f"# Sample efficiency: {env or args.env}",
+            "",
+            table,
+            "",
+            f"Steps to threshold: first rollout end where the mean extrinsic return of the last {args.window} episodes "
+            f"is >= {args.threshold} (counted once the window holds >= {args.min_window} episodes); mean +- std over the "
+            "seeds that reached it. Final success rate: fraction of the last episodes of the window with return > 0, "
+            "at the last row of each run.",
+            "",
+            f"- command: `{command}`",
+            *(f"- runs written by: `{c}`" for c in cmds if c != command),
+            f"- seeds: {', '.join(map(str, seeds))}",
+            *(f"- machine (runs): {m}" for m in machines),
+            f"- machine (this summary): {machine_line(args.threads)}",
+            f"- threads: {args.threads} (torch.set_num_threads) in this command; the runs' own are in their commands "
+            "(default 2); runs executed one at a time",
+            "",
+        ]
+    )
+    atomic_write_bytes(out / "summary.md", text.encode(), fsync=False)
+    print("\n" + text)
+    return text
+
+
+# ---------------------------------------------------------------------------------------------- main
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--env", default="GoCu/DoorKey-8x8-v0", help="any registered gymnasium id")
+    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--timesteps", type=int, default=800_000)
+    p.add_argument("--out", default=None, help="output dir (default benchmarks/out/<env name>)")
+    p.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    p.add_argument("--checkpoint-freq", type=int, default=100_000, help="env steps between checkpoints (rounded up to rollouts)")
+    p.add_argument("--keep-checkpoints", type=int, default=2, help="newest checkpoints kept per run (a PPO_GoCu one is ~90 MB)")
+    p.add_argument("--restart", action="store_true", help="discard existing checkpoints of the selected runs")
+    p.add_argument("--summary-only", action="store_true", help="only summarise the CSVs in --out")
+    p.add_argument("--threshold", type=float, default=0.9, help="mean return for 'steps to threshold'")
+    p.add_argument("--window", type=int, default=100, help="episodes in the return window")
+    p.add_argument("--min-window", type=int, default=100, help="episodes the window must hold before the threshold counts")
+    # GoCu settings
+    p.add_argument("--goal-strategy", default=None, choices=list(GOAL_STRATEGIES), help="(default: the module's, proportional)")
+    p.add_argument("--n-goals", type=int, default=None, help="K")
+    p.add_argument("--intrinsic-coef", type=float, default=0.25, help="sigma of eq 10")
+    p.add_argument("--curiosity-kwargs", default="{}", help="JSON dict of GoalCuriosityModule keywords")
+    # overrides of the SPEC's PPO settings (for tests and quick checks)
+    p.add_argument("--n-envs", type=int, default=N_ENVS)
+    p.add_argument("--n-steps", type=int, default=PPO_SETTINGS["n_steps"])
+    p.add_argument("--batch-size", type=int, default=PPO_SETTINGS["batch_size"])
+    p.add_argument("--print-every", type=int, default=10, help="print a progress line every this many rollouts")
+    p.add_argument("--quiet", dest="verbose", action="store_false")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> str:
+    """Run (or resume) every (algo, seed) run, then summarise. :return: the summary's markdown."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.keep_checkpoints < 1:
+        parser.error("--keep-checkpoints must be >= 1")
+    argv_list = list(sys.argv[1:] if argv is None else argv)
+    if args.out is None:
+        args.out = os.path.join("benchmarks", "out", args.env.split("/")[-1].lower())
+    th.set_num_threads(args.threads)
+    command = shlex.join(["python", "benchmarks/sample_efficiency.py", *argv_list])
+    print(f"command: {command}")
+    print(f"machine: {machine_line(args.threads)}; seeds {args.seeds}")
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if not args.summary_only:
+        for seed in args.seeds:
+            for algo in args.algos:
+                Run(args, algo, seed, command).execute()
+    return write_summary(args, command)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,160 @@
+"""benchmarks/sample_efficiency.py and benchmarks/plot_curves.py with a tiny budget on DoorKey-5x5
+(4 envs x 128 steps per rollout, tiny curiosity settings; about 40-60 s on 2 busy cores)."""
+
+import csv
+import importlib.util
+import json
+import pathlib
+
+import pytest
+import torch as th
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY_IMAGE_CURIOSITY = dict(
+    n_goals=4,
+    goal_buffer_size=64,
+    predictor_hidden=[32, 32],
+    predictor_pairs=256,
+    predictor_epochs=1,
+    predictor_train_freq=512,
+    vae_epochs=1,
+    pretrain_steps=256,
+    memory_size=512,
+)
+ROLLOUT = 4 * 128
+
+
+def load_script(name: str, relpath: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / relpath)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def se():
+    return load_script("sample_efficiency", "benchmarks/sample_efficiency.py")
+
+
+@pytest.fixture(scope="module")
+def plot_curves():
+    return load_script("plot_curves", "benchmarks/plot_curves.py")
+
+
+def tiny_args(out, timesteps, *extra):
+    return [
+        "--env", "GoCu/DoorKey-5x5-v0", "--seeds", "0", "--timesteps", str(timesteps), "--out", str(out),
+        "--n-envs", "4", "--n-steps", "128", "--batch-size", "256", "--threads", "1", "--checkpoint-freq", "1024",
+        "--curiosity-kwargs", json.dumps(TINY_IMAGE_CURIOSITY), "--quiet", *extra,
+    ]
+
+
+def read(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def two_runs(se, tmp_path_factory):
+    """PPO and PPO_GoCu, seed 0, 2048 steps each."""
+    th.set_num_threads(1)
+    out = tmp_path_factory.mktemp("se")
+    summary = se.main(tiny_args(out, 2048))
+    return out, summary
+
+
+def test_csvs_and_summary(se, two_runs):
+    out, summary = two_runs
+    for algo in ("ppo", "ppo_gocu"):
+        path = out / f"{algo}_seed0.csv"
+        rows = read(path)
+        assert tuple(rows[0].keys()) == se.COLUMNS
+        steps = [int(r["steps"]) for r in rows]
+        assert steps == list(range(ROLLOUT, 2048 + 1, ROLLOUT)), steps
+        assert all(r["algo"] == algo and r["seed"] == "0" for r in rows)
+        episodes = [int(r["episodes"]) for r in rows]
+        assert episodes == sorted(episodes) and episodes[-1] >= 4  # DoorKey-5x5 episodes end within 250 steps
+        wall = [float(r["wall_time_s"]) for r in rows]
+        assert wall == sorted(wall)
+        last = rows[-1]
+        assert 0.0 <= float(last["success_rate"]) <= 1.0 and 0.0 <= float(last["mean_return"]) <= 1.0
+        intrinsic = [r["intrinsic_mean"] for r in rows]
+        if algo == "ppo":
+            assert all(v == "" for v in intrinsic)
+        else:
+            assert all(0.0 <= float(v) <= 0.1 + 1e-6 for v in intrinsic)  # raw r_gc in [0, alpha / delta]
+        assert (out / "checkpoints" / f"{algo}_seed0" / "model_2048.zip").is_file()
+    md = (out / "summary.md").read_text()
+    assert md.strip() in summary
+    for text in ("| ppo |", "| ppo_gocu |", "steps to mean return >= 0.9", "command:", "seeds: 0", "machine (runs):", "threads: 1"):
+        assert text in md, text
+    # a finished run is skipped, and --summary-only rewrites the summary from the CSVs
+    before = read(out / "ppo_seed0.csv")
+    se.main(tiny_args(out, 2048, "--algos", "ppo"))
+    assert read(out / "ppo_seed0.csv") == before
+    (out / "summary.md").unlink()
+    se.main(["--out", str(out), "--summary-only", "--threads", "1"])
+    assert "| ppo_gocu |" in (out / "summary.md").read_text()
+
+
+def test_other_settings_refused(se, two_runs):
+    out, _ = two_runs
+    with pytest.raises(SystemExit, match="other settings"):
+        se.main(tiny_args(out, 4096, "--algos", "ppo_gocu", "--n-goals", "3"))
+
+
+def test_plot(plot_curves, two_runs, tmp_path):
+    out, _ = two_runs
+    png = plot_curves.main([str(out), "--out", str(tmp_path / "curves.png")])
+    assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    png2 = plot_curves.plot(out, tmp_path / "sr.png", metric="success_rate", band="std")
+    assert png2.stat().st_size > 1000
+
+
+def test_resume_after_crash(se, tmp_path, monkeypatch):
+    """A run killed after its 2048-step checkpoint continues from there on the same command."""
+    th.set_num_threads(1)
+    out = tmp_path / "crash"
+    original = se.SampleEfficiencyCallback._on_rollout_end
+
+    def crash(self):
+        original(self)
+        if self.num_timesteps >= 2048 + ROLLOUT:
+            raise RuntimeError("simulated crash")
+
+    monkeypatch.setattr(se.SampleEfficiencyCallback, "_on_rollout_end", crash)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        se.main(tiny_args(out, 3072, "--algos", "ppo_gocu"))
+    ckpt = out / "checkpoints" / "ppo_gocu_seed0"
+    assert sorted(p.name for p in ckpt.glob("state_*.json")) == ["state_1024.json", "state_2048.json"]
+    assert [int(r["steps"]) for r in read(out / "ppo_gocu_seed0.csv")][-1] == 2048 + ROLLOUT  # the live CSV ran ahead
+    episodes_at_ckpt = json.loads((ckpt / "state_2048.json").read_text())["episodes"]
+
+    monkeypatch.setattr(se.SampleEfficiencyCallback, "_on_rollout_end", original)
+    se.main(tiny_args(out, 3072, "--algos", "ppo_gocu"))
+    rows = read(out / "ppo_gocu_seed0.csv")
+    steps = [int(r["steps"]) for r in rows]
+    assert steps == list(range(ROLLOUT, 3072 + 1, ROLLOUT)), steps  # continued past 2048, no restart, no repeat
+    state = json.loads((ckpt / "state_3072.json").read_text())
+    assert state["resumed_from"] == [2048] and state["done"]
+    assert int(rows[-1]["episodes"]) >= episodes_at_ckpt
+    wall = [float(r["wall_time_s"]) for r in rows]
+    assert wall == sorted(wall)
+    assert not list(ckpt.glob(".*tmp"))  # no temporary files left behind
+    # a truncated model file is not taken for a checkpoint (the resumption falls back to an older one)
+    good = ckpt / "model_3072.zip"
+    bad = tmp_path / "truncated.zip"
+    bad.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    assert se.model_readable(good) and not se.model_readable(bad)
+
+
+def test_steps_to_threshold(se):
+    rows = [
+        {"steps": 100, "window_episodes": 50, "mean_return": 0.95},  # window not full yet: does not count
+        {"steps": 200, "window_episodes": 100, "mean_return": 0.85},
+        {"steps": 300, "window_episodes": 100, "mean_return": 0.91},
+        {"steps": 400, "window_episodes": 100, "mean_return": 0.80},
+    ]
+    assert se.steps_to_threshold(rows, 0.9, 100) == 300
+    assert se.steps_to_threshold(rows, 0.9, 10) == 100
+    assert se.steps_to_threshold(rows, 0.99, 100) is None

@@ -5,6 +5,7 @@ Importing the package also registers the ``GoCu/...`` environment ids.
 """
 
 from sb3_gocu.callbacks import GoCuCallback
+from sb3_gocu.checkpoints import GoCuCheckpointCallback, latest_checkpoint
 from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.envs import register_envs
 from sb3_gocu.policies import PaperCNN
@@ -17,12 +18,14 @@ register_envs()
 
 __all__ = [
     "GoCuCallback",
+    "GoCuCheckpointCallback",
     "GoCuVecEnvWrapper",
     "GoCuWrapper",
     "GoalCuriosityModule",
     "PPO_GoCu",
     "PaperCNN",
     "find_gocu_module",
+    "latest_checkpoint",
     "register_envs",
     "__version__",
 ]

@@ -114,3 +114,30 @@ def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():
     # PPO_GoCu with a sum-mode wrapper would count curiosity twice: refused
     with pytest.raises(ValueError, match="separate"):
         PPO_GoCu("MlpPolicy", GoCuVecEnvWrapper(chain_venv(), mode="sum", curiosity_kwargs=SMALL_CURIOSITY))
+
+
+def test_background_updates_train_the_same_networks_one_rollout_later():
+    space = ChainEnv().observation_space
+    settings = {**SMALL_CURIOSITY, "vae_train_freq": 256}
+    sync = GoalCuriosityModule(space, **settings, seed=5)
+    background = GoalCuriosityModule(space, **settings, seed=5, train_in_background=True)
+    rng = np.random.default_rng(0)
+    batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(160)]
+    for module in (sync, background):
+        module.recording = True
+        for obs, dones in batches:
+            module.step(obs, dones)
+    out_sync = sync.maybe_train()
+    assert "predictor_loss" in out_sync and "vae_loss" in out_sync
+    out_started = background.maybe_train()
+    assert "predictor_loss" not in out_started, "the update runs in the background"
+    old_fold = background._folded.w_out.clone()
+    assert background._job is not None
+    out_finished = background.finish_background_update()
+    assert out_finished["predictor_loss"] == out_sync["predictor_loss"] and out_finished["vae_loss"] == out_sync["vae_loss"]
+    for name in ("vae", "predictor"):
+        a, b = getattr(sync, name).state_dict(), getattr(background, name).state_dict()
+        assert all(th.equal(a[k], b[k]) for k in a), name
+    assert not th.equal(old_fold, background._folded.w_out), "the new predictor is in use after the finish"
+    obs = np.array([[0.3, 0.09], [0.6, 0.36]], dtype=np.float32)
+    assert np.array_equal(sync.step(obs, np.zeros(2, bool))[0], background.step(obs, np.zeros(2, bool))[0])

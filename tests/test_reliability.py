@@ -285,6 +285,7 @@ def test_a_nan_weight_set_by_hand_is_loud_not_silent(tmp_path):
     module = recorded_module()
     with th.no_grad():
         module.vae.encoder[0].weight[0, 0] = float("nan")
+    module._sync_encoder()  # inference embeds with a copy of the VAE taken after each update
     module.begin_episodes(np.arange(2))  # both envs have goals: their rewards go through the broken VAE
     assert module._goal_valid.all()
     raw, normalized = module.step(np.full((2, 2), 0.3, np.float32), np.zeros(2, bool))

@@ -111,6 +111,7 @@ def test_module_reward_path_by_hand():
     space = spaces.Box(-10, 10, (1,), np.float32)
     mod = GoalCuriosityModule(space, n_goals=2, goal_buffer_size=2, embed_dim=1, predictor_hidden=(1,), seed=0, goal_novelty=0.0)
     mod.vae.embed = lambda x: x  # phi(s) = s, so the numbers stay hand-made
+    mod._sync_encoder()  # inference embeds with a frozen copy of the VAE
     mod.predictor = tiny_predictor()
     mod._folded = mod.predictor.fold()
     goals = np.array([[2.0], [-4.0]], dtype=np.float32)

@@ -21,7 +21,9 @@ the same episode costs a hash. None of this changes the value computed.
 from __future__ import annotations
 
 import copy
+import copy
 import hashlib
+import threading
 import math
 import time
 import warnings
@@ -113,6 +115,10 @@ class GoalCuriosityModule:
     :param episode_memory: most recent states of the current episode kept per env to draw goals from
     :param obs_key: for a Dict observation space, the entry to embed
     :param image_channels: keep only the newest ``image_channels`` channels of an image (frame stacks)
+    :param train_in_background: run each VAE / predictor update in a background thread, started by
+        :meth:`maybe_train` at one rollout end and taken into use at the next one, so that it overlaps with the
+        rollout (env stepping leaves a core idle). The networks trained are the same as without it (same data,
+        same generator); only the step at which they take over moves one rollout later
     :param device: torch device of the networks
     :param seed: seed of the module's random generators
     """
@@ -154,6 +160,7 @@ class GoalCuriosityModule:
         episode_memory: int = 4096,
         obs_key: str | None = None,
         image_channels: int | None = None,
+        train_in_background: bool = False,
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
@@ -256,6 +263,9 @@ class GoalCuriosityModule:
         self._episodes: list[deque] = []
         self._reward_cache: list[dict] = []
         self._phi_cache: dict[bytes, th.Tensor] = {}
+        self.train_in_background = train_in_background
+        self._job: threading.Thread | None = None
+        self._job_result: dict[str, Any] = {}
         self.embedding_cache_size = 100_000
         self._next_episode_id = 0
         self.finished_episodes: deque = deque(maxlen=1024)
@@ -281,6 +291,7 @@ class GoalCuriosityModule:
         self.time_vae = 0.0
         self.time_predictor = 0.0
         self._folded = self.predictor.fold()
+        self._sync_encoder()
 
     # ------------------------------------------------------------------ embedding and scoring
     @th.inference_mode()
@@ -288,7 +299,7 @@ class GoalCuriosityModule:
         """phi of a batch of raw observations (as kept in the buffers), (n, embed_dim)."""
         if len(raw) == 0:
             return th.zeros(0, self.goal_buffer.embeddings.shape[1])
-        out = [self.vae.embed(self.adapter.to_tensor(raw[i : i + batch_size], self.device)).cpu() for i in range(0, len(raw), batch_size)]
+        out = [self._encoder.embed(self.adapter.to_tensor(raw[i : i + batch_size], self.device)).cpu() for i in range(0, len(raw), batch_size)]
         return th.cat(out)
 
     @th.inference_mode()
@@ -412,7 +423,7 @@ class GoalCuriosityModule:
                 out[i] = hit
         if todo:
             todo_rows = rows[np.asarray(todo)]
-            fresh = self.vae.embed(self.adapter.to_tensor(raw[todo_rows], self.device)).cpu()
+            fresh = self._encoder.embed(self.adapter.to_tensor(raw[todo_rows], self.device)).cpu()
             out[th.as_tensor(todo)] = fresh
             if len(self._phi_cache) + len(todo) > self.embedding_cache_size:
                 self._phi_cache.clear()
@@ -469,23 +480,27 @@ class GoalCuriosityModule:
             added += self.goal_buffer.add(candidates, self.embed(candidates), self.rng)
         return added
 
-    def train_vae(self, epochs: int | None = None) -> dict[str, float]:
-        """Train the VAE on the memory bank (eq 8), then re-embed goals and drop stale embeddings.
+    def _sync_encoder(self) -> None:
+        """Inference embeds with a frozen copy of the VAE, so the VAE itself can train while steps go on."""
+        self._encoder = copy.deepcopy(self.vae).eval().requires_grad_(False)
 
-        :param epochs: passes over the memory bank (default ``vae_epochs``)
-        :return: statistics of the update
-        """
-        t0 = time.perf_counter()
+    # VAE update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
+    def _prepare_vae(self, epochs: int | None) -> dict[str, Any] | None:
         epochs = self.vae_epochs if epochs is None else epochs
-        data = self.memory.observations[: self.memory.size]
+        data = self.memory.observations[: self.memory.size].copy()
         if len(data) == 0 or epochs == 0:
-            return {}
+            return None
         weights = np.ones(len(data), dtype=np.float32)
         if self.vae_dedupe:
             flat = data.reshape(len(data), -1)
             _, first, counts = np.unique(flat, axis=0, return_index=True, return_counts=True)
             data = data[first]
             weights = (counts * len(counts) / counts.sum()).astype(np.float32)
+        self.last_vae_update = self.n_recorded_steps
+        return {"data": data, "weights": weights, "epochs": epochs}
+
+    def _fit_vae(self, data: np.ndarray, weights: np.ndarray, epochs: int) -> dict[str, Any]:
+        t0 = time.perf_counter()
         snapshot = self._snapshot(self.vae, self.vae_optimizer)
         self.vae.train()
         losses, skipped = [], 0
@@ -496,7 +511,7 @@ class GoalCuriosityModule:
                 idx = order[start : start + self.vae_batch_size]
                 x = self.adapter.to_tensor(data[idx], self.device)
                 w = th.from_numpy(weights[idx]).to(self.device)
-                loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w)
+                loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
                 if not th.isfinite(loss):
                     skipped += 1
                     continue
@@ -508,23 +523,37 @@ class GoalCuriosityModule:
                 self.vae_optimizer.step()
                 losses.append(loss.item())
         self.vae.eval()
-        self._guard_update("vae", self.vae, self.vae_optimizer, snapshot, skipped)
+        return {"snapshot": snapshot, "losses": losses, "skipped": skipped, "n": n, "time": time.perf_counter() - t0}
+
+    def _finish_vae(self, fit: dict[str, Any]) -> dict[str, float]:
+        t0 = time.perf_counter()
+        self._guard_update("vae", self.vae, self.vae_optimizer, fit["snapshot"], fit["skipped"])
+        self._sync_encoder()
         self._phi_cache.clear()
         self.goal_buffer.refresh(self.embed)
         self.trajectories.clear()  # stored embeddings belong to the old encoder
         self._refresh_active_goals()
-        self.last_vae_update = self.n_recorded_steps
-        dt = time.perf_counter() - t0
+        dt = fit["time"] + time.perf_counter() - t0
         self.time_training += dt
         self.time_vae += dt
         out = {
-            "vae_loss": float(np.mean(losses)) if losses else float("nan"),
-            "vae_distinct_observations": float(n),
-            "vae_skipped_updates": float(skipped),
+            "vae_loss": float(np.mean(fit["losses"])) if fit["losses"] else float("nan"),
+            "vae_distinct_observations": float(fit["n"]),
+            "vae_skipped_updates": float(fit["skipped"]),
             "vae_time": dt,
         }
         self.stats.update(out)
         return out
+
+    def train_vae(self, epochs: int | None = None) -> dict[str, float]:
+        """Train the VAE on the memory bank (eq 8), then re-embed goals and drop stale embeddings.
+
+        :param epochs: passes over the memory bank (default ``vae_epochs``)
+        :return: statistics of the update
+        """
+        self.finish_background_update()
+        job = self._prepare_vae(epochs)
+        return {} if job is None else self._finish_vae(self._fit_vae(**job))
 
     def pretrain(self) -> dict[str, float]:
         """Train the VAE on what the memory bank holds (the random-policy observations) and mark the module
@@ -534,19 +563,18 @@ class GoalCuriosityModule:
         self.last_predictor_update = self.n_recorded_steps  # P_m counts from the first rollout
         return out
 
-    def train_predictor(self) -> dict[str, float]:
-        """Draw pairs (s_t, s_{t+y}), label them with eq 15-16 and train the predictor.
-
-        :return: statistics of the update (loss, accuracy against the labels, fraction labelled mastered)
-        """
-        t0 = time.perf_counter()
+    # predictor update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
+    def _prepare_predictor(self) -> dict[str, Any] | None:
         phi_s, phi_g, dist = self.trajectories.sample_pairs(self.predictor_pairs, self.max_distance, self.rng)
         self.last_predictor_update = self.n_recorded_steps
         keep = th.isfinite(phi_s).all(1) & th.isfinite(phi_g).all(1)  # a broken VAE's embeddings teach nothing
         phi_s, phi_g, dist = phi_s[keep], phi_g[keep], dist[keep]
         if len(phi_s) < 2:
-            return {}
-        phi_s, phi_g, dist = phi_s.to(self.device), phi_g.to(self.device), dist.to(self.device)
+            return None
+        return {"phi_s": phi_s.to(self.device), "phi_g": phi_g.to(self.device), "dist": dist.to(self.device)}
+
+    def _fit_predictor(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor) -> dict[str, Any]:
+        t0 = time.perf_counter()
         with th.no_grad():
             prior = 1.0 - self.predictor.mastery(phi_s, phi_g)  # decision 1: belief that the skill is not mastered
             p_skill = mastered_probability(
@@ -578,32 +606,94 @@ class GoalCuriosityModule:
                 losses.append(loss.item())
                 accs.append(((logp[:, 1] > logp[:, 0]) == (t > 0.5)).float().mean().item())
         self.predictor.eval()
-        self._guard_update("predictor", self.predictor, self.predictor_optimizer, snapshot, skipped)
+        return {"snapshot": snapshot, "losses": losses, "accs": accs, "skipped": skipped, "n": n,
+                "mastered": float((p_skill > 0.5).float().mean()), "time": time.perf_counter() - t0}
+
+    def _finish_predictor(self, fit: dict[str, Any]) -> dict[str, float]:
+        t0 = time.perf_counter()
+        self._guard_update("predictor", self.predictor, self.predictor_optimizer, fit["snapshot"], fit["skipped"])
         self._folded = self.predictor.fold()
         self._refresh_active_goals()
-        dt = time.perf_counter() - t0
+        dt = fit["time"] + time.perf_counter() - t0
         self.time_training += dt
         self.time_predictor += dt
         out = {
-            "predictor_loss": float(np.mean(losses)) if losses else float("nan"),
-            "predictor_accuracy": float(np.mean(accs)) if accs else float("nan"),
-            "mastered_fraction": float((p_skill > 0.5).float().mean()),
-            "predictor_pairs": float(n),
-            "predictor_skipped_updates": float(skipped),
+            "predictor_loss": float(np.mean(fit["losses"])) if fit["losses"] else float("nan"),
+            "predictor_accuracy": float(np.mean(fit["accs"])) if fit["accs"] else float("nan"),
+            "mastered_fraction": fit["mastered"],
+            "predictor_pairs": float(fit["n"]),
+            "predictor_skipped_updates": float(fit["skipped"]),
             "predictor_time": dt,
         }
         self.stats.update(out)
         return out
 
+    def train_predictor(self) -> dict[str, float]:
+        """Draw pairs (s_t, s_{t+y}), label them with eq 15-16 and train the predictor.
+
+        :return: statistics of the update (loss, accuracy against the labels, fraction labelled mastered)
+        """
+        self.finish_background_update()
+        job = self._prepare_predictor()
+        return {} if job is None else self._finish_predictor(self._fit_predictor(**job))
+
+    # scheduling
     def maybe_train(self) -> dict[str, float]:
         """Add goals from finished episodes, and retrain the predictor every ``predictor_train_freq`` and the
-        VAE every ``vae_train_freq`` recorded steps. Call it between rollouts."""
-        out: dict[str, float] = {"goals_added": float(self.add_finished_episode_goals())}
+        VAE every ``vae_train_freq`` recorded steps. Call it between rollouts.
+
+        With ``train_in_background``, an update due now starts in a background thread and is taken into use
+        at the next call (which waits for it if it is not done)."""
+        out: dict[str, float] = self.finish_background_update()
+        out["goals_added"] = float(self.add_finished_episode_goals())
         # predictor first: a VAE update makes the stored embeddings (the predictor's pairs) stale
+        jobs: list[tuple[str, dict[str, Any]]] = []
         if self.n_recorded_steps - self.last_predictor_update >= self.predictor_train_freq:
-            out.update(self.train_predictor())
+            job = self._prepare_predictor()
+            if job is not None:
+                jobs.append(("predictor", job))
         if self.n_recorded_steps - self.last_vae_update >= self.vae_train_freq:
-            out.update(self.train_vae())
+            job = self._prepare_vae(None)
+            if job is not None:
+                jobs.append(("vae", job))
+        if not jobs:
+            return out
+        if not self.train_in_background:
+            for name, job in jobs:
+                out.update(self._run_job(name, job))
+            return out
+        self._job_result = {"jobs": jobs, "fits": [], "error": None}
+        self._job = threading.Thread(target=self._background, name="gocu-update", daemon=True)
+        self._job.start()
+        return out
+
+    def _run_job(self, name: str, job: dict[str, Any]) -> dict[str, float]:
+        if name == "predictor":
+            return self._finish_predictor(self._fit_predictor(**job))
+        return self._finish_vae(self._fit_vae(**job))
+
+    def _background(self) -> None:
+        try:
+            for name, job in self._job_result["jobs"]:
+                self._job_result["fits"].append((name, self._fit_predictor(**job) if name == "predictor" else self._fit_vae(**job)))
+        except BaseException as error:  # re-raised in the caller's thread by finish_background_update
+            self._job_result["error"] = error
+
+    def finish_background_update(self) -> dict[str, float]:
+        """Wait for a background update, if one runs, and take its networks into use.
+
+        :return: statistics of that update (empty if none ran)
+        """
+        if self._job is None:
+            return {}
+        self._job.join()
+        self._job = None
+        result, self._job_result = self._job_result, {}
+        if result["error"] is not None:
+            raise RuntimeError("a background curiosity update failed") from result["error"]
+        out: dict[str, float] = {}
+        for name, fit in result["fits"]:
+            out.update(self._finish_predictor(fit) if name == "predictor" else self._finish_vae(fit))
         return out
 
     def pop_reward_stats(self) -> dict[str, float]:
@@ -670,7 +760,9 @@ class GoalCuriosityModule:
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict[str, Any]:
         """Everything the module learned and remembers, as tensors and plain Python values (loadable with
-        ``torch.load(..., weights_only=True)``)."""
+        ``torch.load(..., weights_only=True)``). A background update still running is waited for and taken
+        into use first."""
+        self.finish_background_update()
         return {
             "vae": self.vae.state_dict(),
             "vae_optimizer": self.vae_optimizer.state_dict(),
@@ -712,6 +804,7 @@ class GoalCuriosityModule:
             bad = self.nonfinite_entries(state[net])
             if bad:
                 raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
+        self.finish_background_update()
         self.vae.load_state_dict(state["vae"], strict=strict)
         self._phi_cache.clear()
         self.predictor.load_state_dict(state["predictor"], strict=strict)
@@ -720,6 +813,7 @@ class GoalCuriosityModule:
         if "predictor_optimizer" in state:
             self.predictor_optimizer.load_state_dict(state["predictor_optimizer"])
         self.vae.eval()
+        self._sync_encoder()
         self.predictor.eval()
         self.goal_buffer.load_state_dict(state["goal_buffer"])
         self.memory.load_state_dict(state["memory"])

@@ -14,6 +14,10 @@ from torch import nn
 from torch.nn import functional as F
 
 
+def _noise(like: th.Tensor, generator: th.Generator | None) -> th.Tensor:
+    return th.randn(like.shape, generator=generator, dtype=like.dtype, device=like.device)
+
+
 class ConvVAE(nn.Module):
     """The paper's image VAE (section 5.1.2).
 
@@ -59,11 +63,13 @@ class ConvVAE(nn.Module):
         """phi(x): the embedding used for goals and states (not mu)."""
         return F.relu(self.fc(self.conv(x).flatten(1)))
 
-    def forward(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        """:return: reconstruction logits, mu, log-variance"""
+    def forward(self, x: th.Tensor, generator: th.Generator | None = None) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """:param generator: source of the reparameterisation noise (training mode); the module's own generator
+            keeps training independent of the global torch RNG (which the policy samples from)
+        :return: reconstruction logits, mu, log-variance"""
         phi = self.embed(x)
         mu, logvar = self.mu(phi), self.logvar(phi)
-        z = mu + th.randn_like(mu) * th.exp(0.5 * logvar) if self.training else mu
+        z = mu + _noise(mu, generator) * th.exp(0.5 * logvar) if self.training else mu
         y = self.decoder_fc(z).view(-1, 32, *self.feature_hw)
         logits = self.deconv(y)[..., : self.input_shape[1], : self.input_shape[2]]
         return logits, mu, logvar
@@ -98,10 +104,10 @@ class MlpVAE(nn.Module):
     def embed(self, x: th.Tensor) -> th.Tensor:
         return self.encoder(x)
 
-    def forward(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+    def forward(self, x: th.Tensor, generator: th.Generator | None = None) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         phi = self.embed(x)
         mu, logvar = self.mu(phi), self.logvar(phi)
-        z = mu + th.randn_like(mu) * th.exp(0.5 * logvar) if self.training else mu
+        z = mu + _noise(mu, generator) * th.exp(0.5 * logvar) if self.training else mu
         return self.decoder(z), mu, logvar
 
     def reconstruction_loss(self, recon: th.Tensor, x: th.Tensor) -> th.Tensor:
@@ -112,14 +118,19 @@ class MlpVAE(nn.Module):
 
 
 def vae_loss(
-    vae: ConvVAE | MlpVAE, x: th.Tensor, beta: float = 1.0, weights: th.Tensor | None = None
+    vae: ConvVAE | MlpVAE,
+    x: th.Tensor,
+    beta: float = 1.0,
+    weights: th.Tensor | None = None,
+    generator: th.Generator | None = None,
 ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
     """Negative of eq 8, averaged over the batch: reconstruction + beta * KL(q(z|x) || N(0, I)).
 
     :param weights: optional per-sample weights (the multiplicity of a de-duplicated observation)
+    :param generator: source of the reparameterisation noise
     :return: total loss, reconstruction term, KL term
     """
-    out, mu, logvar = vae(x)
+    out, mu, logvar = vae(x, generator)
     recon = vae.reconstruction_loss(out, x)
     kl = -0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(1)
     if weights is not None:

@@ -730,7 +730,9 @@ class GoalCuriosityModule:
     def _grads_finite(network: th.nn.Module) -> bool:
         """Whether every gradient of ``network`` is finite (a step on a NaN/inf gradient is skipped)."""
         grads = [p.grad for p in network.parameters() if p.grad is not None]
-        return not grads or bool(th.isfinite(th.nn.utils.get_total_norm(grads, norm_type=float("inf"))))
+        # the 2-norm (fused over tensors) is non-finite iff some entry is (or squares overflow: a diverged step,
+        # skipped too); 10x cheaper than the inf-norm, which cost a third of a predictor step
+        return not grads or bool(th.isfinite(th.nn.utils.get_total_norm(grads, norm_type=2.0)))
 
     @staticmethod
     def nonfinite_entries(state: dict[str, th.Tensor]) -> list[str]:

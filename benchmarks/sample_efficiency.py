@@ -69,6 +69,7 @@ from stable_baselines3.common.env_util import make_vec_env
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
 from sb3_gocu import PaperCNN, PPO_GoCu
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES
+from sb3_gocu.checkpoints import atomic_write
 
 ALGOS = ("ppo", "ppo_gocu")
 PPO_SETTINGS: dict[str, Any] = dict(
@@ -82,20 +83,9 @@ COLUMNS = (
 
 
 # ---------------------------------------------------------------------------------------------- files
-def atomic_write_bytes(path: pathlib.Path, data: bytes, fsync: bool = True) -> None:
-    """Write ``data`` to ``path`` all at once or not at all (temporary file beside it, then ``os.replace``)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            if fsync:
-                f.flush()
-                os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+def atomic_write_bytes(path: pathlib.Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` all at once or not at all (:func:`sb3_gocu.checkpoints.atomic_write`)."""
+    atomic_write(path, lambda f: f.write(data))
 
 
 def csv_bytes(rows: Sequence[dict[str, Any]]) -> bytes:
@@ -236,7 +226,7 @@ class Run:
         }
         self.rows.append(row)
         # the live CSV (for watching a run); the checkpoint's copy is the one a resumption trusts
-        atomic_write_bytes(self.csv_path, csv_bytes(self.rows), fsync=False)
+        atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
         n_rollouts = len(self.rows)
         if self.args.verbose and (n_rollouts % self.args.print_every == 0 or steps >= self.args.timesteps):
             print(
@@ -514,7 +504,7 @@ def write_summary(args: argparse.Namespace, command: str) -> str:
             "",
         ]
     )
-    atomic_write_bytes(out / "summary.md", text.encode(), fsync=False)
+    atomic_write_bytes(out / "summary.md", text.encode())
     print("\n" + text)
     return text
 

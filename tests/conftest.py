@@ -1,4 +1,6 @@
+import importlib.util
 import os
+import pathlib
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -61,3 +63,27 @@ SMALL_CURIOSITY = dict(
     pretrain_steps=64,
     memory_size=256,
 )
+
+
+#: curiosity settings small enough for image envs in a test (JSON-friendly: lists, not tuples)
+TINY_IMAGE_CURIOSITY = dict(
+    n_goals=4,
+    goal_buffer_size=64,
+    predictor_hidden=[32, 32],
+    predictor_pairs=256,
+    predictor_epochs=1,
+    predictor_train_freq=512,
+    vae_epochs=1,
+    pretrain_steps=256,
+    memory_size=512,
+)
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def load_script(name: str, relpath: str):
+    """Import a script of the repository (benchmarks/, examples/) as a module."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / relpath)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -2,33 +2,14 @@
 (4 envs x 128 steps per rollout, tiny curiosity settings; about 40-60 s on 2 busy cores)."""
 
 import csv
-import importlib.util
 import json
-import pathlib
 
 import pytest
 import torch as th
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-TINY_IMAGE_CURIOSITY = dict(
-    n_goals=4,
-    goal_buffer_size=64,
-    predictor_hidden=[32, 32],
-    predictor_pairs=256,
-    predictor_epochs=1,
-    predictor_train_freq=512,
-    vae_epochs=1,
-    pretrain_steps=256,
-    memory_size=512,
-)
+from conftest import TINY_IMAGE_CURIOSITY, load_script
+
 ROLLOUT = 4 * 128
-
-
-def load_script(name: str, relpath: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / relpath)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,5 @@
 """examples/curiosity_map.py on a PPO_GoCu model trained for a tiny budget on DoorKey-8x8 (about 15-25 s on 2 busy cores)."""
 
-import importlib.util
-import pathlib
 
 import numpy as np
 import pytest
@@ -10,26 +8,9 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_gocu import PPO_GoCu
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+from conftest import TINY_IMAGE_CURIOSITY, load_script
+
 ENV_ID = "GoCu/DoorKey-8x8-v0"
-TINY_IMAGE_CURIOSITY = dict(
-    n_goals=4,
-    goal_buffer_size=64,
-    predictor_hidden=(32, 32),
-    predictor_pairs=256,
-    predictor_epochs=1,
-    predictor_train_freq=512,
-    vae_epochs=1,
-    pretrain_steps=256,
-    memory_size=512,
-)
-
-
-def load_script(name: str, relpath: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / relpath)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")

@@ -17,8 +17,11 @@ Runs execute one at a time (seed-major: seed 0 of every algo, then seed 1, ...),
 * ``window_episodes``: episodes in the return window (at most ``--window``, 100);
 * ``mean_return``: mean extrinsic return of the last ``--window`` episodes (Monitor's returns: the
   GoCu wrapper sits above Monitor, so they are extrinsic); ``success_rate``: fraction of them with return > 0;
+* ``key_rate`` / ``door_rate`` (DoorKey ids, from ``info["task_phase"]``): fraction of the same episodes in which
+  the agent picked up the key / opened the door, a measure of exploration that moves before the return does;
 * ``intrinsic_mean`` / ``intrinsic_std``: mean and std of the raw r_gc (eq 13, ``infos["gocu_raw_reward"]``)
-  over the rollout's steps, ``intrinsic_norm_mean``: mean of the normalised r_gc (eq 14), empty for PPO;
+  over the rollout's steps, ``intrinsic_norm_mean``: mean of the normalised r_gc (eq 14), ``goals``: goals in the
+  goal buffer; empty for PPO;
 * ``wall_time_s``: training wall time of the run so far (summed over resumed sessions; the time between
   the last checkpoint and a crash is not counted, those steps are redone); ``fps``: steps/s of that rollout.
 
@@ -77,8 +80,8 @@ PPO_SETTINGS: dict[str, Any] = dict(
 )
 N_ENVS = 16
 COLUMNS = (
-    "algo", "seed", "steps", "episodes", "window_episodes", "mean_return", "success_rate",
-    "intrinsic_mean", "intrinsic_std", "intrinsic_norm_mean", "wall_time_s", "fps",
+    "algo", "seed", "steps", "episodes", "window_episodes", "mean_return", "success_rate", "key_rate", "door_rate",
+    "intrinsic_mean", "intrinsic_std", "intrinsic_norm_mean", "goals", "wall_time_s", "fps",
 )
 
 
@@ -154,7 +157,7 @@ class SampleEfficiencyCallback(BaseCallback):
         for info in self.locals["infos"]:
             ep = info.get("episode")
             if ep is not None:
-                self.run.add_episode(float(ep["r"]))
+                self.run.add_episode(float(ep["r"]), info.get("task_phase"))
             raw = info.get("gocu_raw_reward")
             if raw is not None:
                 self._sum += raw
@@ -171,7 +174,9 @@ class SampleEfficiencyCallback(BaseCallback):
         else:
             mean = std = norm = float("nan")
         dt = time.perf_counter() - self._t_rollout
-        self.run.add_row(self.num_timesteps, mean, std, norm, (self.num_timesteps - self._steps_rollout) / max(dt, 1e-9))
+        module = getattr(self.model, "curiosity", None)
+        goals = module.goal_buffer.size if module is not None else float("nan")
+        self.run.add_row(self.num_timesteps, mean, std, norm, (self.num_timesteps - self._steps_rollout) / max(dt, 1e-9), goals)
 
 
 class Run:
@@ -192,6 +197,7 @@ class Run:
         self.config = run_config(args, algo, seed)
         self.rows: list[dict[str, Any]] = []
         self.window: deque = deque(maxlen=args.window)
+        self.phases: deque = deque(maxlen=args.window)  # info["task_phase"] at episode ends (DoorKey ids)
         self.episodes = 0
         self.wall_before = 0.0
         self.session_start = time.perf_counter()
@@ -201,15 +207,20 @@ class Run:
         self.done = False
 
     # ------------------------------------------------------------ recording
-    def add_episode(self, ret: float) -> None:
+    def add_episode(self, ret: float, phase: int | None = None) -> None:
         self.window.append(ret)
+        if phase is not None:
+            self.phases.append(int(phase))
         self.episodes += 1
 
     def wall_time(self) -> float:
         return self.wall_before + time.perf_counter() - self.session_start
 
-    def add_row(self, steps: int, intrinsic_mean: float, intrinsic_std: float, intrinsic_norm: float, fps: float) -> None:
+    def add_row(
+        self, steps: int, intrinsic_mean: float, intrinsic_std: float, intrinsic_norm: float, fps: float, goals: float = float("nan")
+    ) -> None:
         w = np.asarray(self.window, dtype=np.float64)
+        ph = np.asarray(self.phases, dtype=np.int64)
         row = {
             "algo": self.algo,
             "seed": self.seed,
@@ -218,9 +229,12 @@ class Run:
             "window_episodes": len(w),
             "mean_return": float(w.mean()) if len(w) else float("nan"),
             "success_rate": float((w > 0).mean()) if len(w) else float("nan"),
+            "key_rate": float((ph >= 1).mean()) if len(ph) else float("nan"),
+            "door_rate": float((ph >= 2).mean()) if len(ph) else float("nan"),
             "intrinsic_mean": intrinsic_mean,
             "intrinsic_std": intrinsic_std,
             "intrinsic_norm_mean": intrinsic_norm,
+            "goals": goals,
             "wall_time_s": self.wall_time(),
             "fps": fps,
         }
@@ -232,6 +246,7 @@ class Run:
             print(
                 f"[{self.name}] {steps:>9d}/{self.args.timesteps} steps  {self.episodes:6d} episodes  "
                 f"mean return {row['mean_return']:.3f}  success {row['success_rate']:.2f}  "
+                f"key {row['key_rate']:.2f}  door {row['door_rate']:.2f}  "
                 f"r_gc {intrinsic_mean:.4f}  {fps:5.0f} steps/s  {row['wall_time_s'] / 60:6.1f} min",
                 flush=True,
             )
@@ -243,6 +258,7 @@ class Run:
             "steps": int(steps),
             "episodes": self.episodes,
             "window": list(self.window),
+            "phases": list(self.phases),
             "wall_time_s": self.wall_time(),
             "rows": self.rows,
             "resumed_from": self.resumed_from,
@@ -290,6 +306,7 @@ class Run:
                 )
             self.rows = state["rows"]
             self.window = deque(state["window"], maxlen=self.args.window)
+            self.phases = deque(state.get("phases", []), maxlen=self.args.window)
             self.episodes = int(state["episodes"])
             self.wall_before = float(state["wall_time_s"])
             self.resumed_from = list(state.get("resumed_from", []))

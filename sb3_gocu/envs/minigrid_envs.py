@@ -3,7 +3,8 @@
 The registered ids ``GoCu/DoorKey-{5x5,8x8,11x11,16x16}-v0`` are built with :func:`make_doorkey`:
 ``minigrid.envs.DoorKeyEnv(size=N)`` wrapped by :class:`DoorKeyRGB32`, which replaces MiniGrid's
 ``Dict`` observation by a ``Box(0, 255, (32, 32, 3), uint8)`` RGB image (HWC) of the agent's
-point of view and adds ``info["is_success"]``.
+point of view and adds ``info["is_success"]`` and ``info["task_phase"]`` (how far the episode has got:
+0 nothing yet, 1 key picked up, 2 door opened, 3 goal reached), which tells whether an agent explores.
 Actions (``Discrete(7)``), the sparse reward (``1 - 0.9 * step_count / max_steps`` on reaching
 the goal, else ``0``) and the episode length (MiniGrid's own ``max_steps = 10 * size**2``,
 signalled as ``truncated``) are MiniGrid's, unchanged.
@@ -22,9 +23,13 @@ from gymnasium import spaces
 # minigrid imports pygame, which prints a banner on import unless told not to.
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
+from minigrid.core.world_object import Door, Key  # noqa: E402
 from minigrid.envs import DoorKeyEnv  # noqa: E402
 
-__all__ = ["FRAME_CACHE_SIZE", "DoorKeyRGB32", "DoorKeyViewEnv", "make_doorkey"]
+__all__ = ["FRAME_CACHE_SIZE", "TASK_PHASES", "DoorKeyRGB32", "DoorKeyViewEnv", "make_doorkey"]
+
+#: Names of the values of ``info["task_phase"]``: the furthest stage of DoorKey reached in the episode so far.
+TASK_PHASES = ("start", "key", "door", "goal")
 
 #: Maximum number of memoised observation frames (about 3.3 kB each at 32x32) per process; the cache
 #: is emptied when full.
@@ -70,7 +75,10 @@ class DoorKeyRGB32(gym.ObservationWrapper):
     ``agent_view_size * tile_size`` pixels square, i.e. 56x56 by default) is resized to
     ``image_size x image_size`` with ``cv2.INTER_AREA``.
     The wrapper also writes ``info["is_success"]`` on every step and reset: ``True`` only on the step
-    where the episode terminates with a positive reward (the agent reached the goal).
+    where the episode terminates with a positive reward (the agent reached the goal), and
+    ``info["task_phase"]``: the furthest stage reached in the episode so far (index into
+    :data:`TASK_PHASES`: 0 start, 1 the key was picked up, 2 the door was opened, 3 the goal was reached).
+    Stages are counted in that order (the door cannot open before the key is held).
 
     :param env: A MiniGrid environment (``env.unwrapped`` must be a ``MiniGridEnv``).
     :param image_size: Side length in pixels of the square observation.
@@ -133,8 +141,12 @@ class DoorKeyRGB32(gym.ObservationWrapper):
         :return: The first observation and an info dict with ``is_success=False``.
         """
         obs, info = super().reset(seed=seed, options=options)
+        base = self.env.unwrapped
+        self._door = next((o for o in base.grid.grid if isinstance(o, Door)), None)
+        self._phase = 0
         info = dict(info)
         info["is_success"] = False
+        info["task_phase"] = 0
         return obs, info
 
     def step(self, action: Any) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
@@ -147,6 +159,15 @@ class DoorKeyRGB32(gym.ObservationWrapper):
         obs, reward, terminated, truncated, info = super().step(action)
         info = dict(info)
         info["is_success"] = bool(terminated and float(reward) > 0.0)
+        phase = getattr(self, "_phase", 0)
+        if phase == 0 and isinstance(self.env.unwrapped.carrying, Key):
+            phase = 1
+        if phase == 1 and self._door is not None and self._door.is_open:
+            phase = 2
+        if info["is_success"]:
+            phase = 3
+        self._phase = phase
+        info["task_phase"] = phase
         return obs, reward, terminated, truncated, info
 
 

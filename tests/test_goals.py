@@ -123,3 +123,28 @@ def test_trajectory_store_pairs_stay_in_episode_and_capacity():
     same = (s_np // 10 == g_np // 10) | (s_np // 7 == g_np // 7)
     assert same.all()
     assert s_np.min() >= 30  # only the last 20 steps per env are kept
+
+
+def test_first_visit_distance_is_the_earliest_visit_of_the_goal():
+    """Trajectory (one env, one episode) 0 1 1 1 2 1 3: a pair (s, g) gets the steps until g is first seen after s."""
+    traj = [0.0, 1.0, 1.0, 1.0, 2.0, 1.0, 3.0]
+    store = TrajectoryStore(total_capacity=16, embed_dim=1, min_per_env=16)
+    store.ensure_envs(1)
+    for v in traj:
+        store.add(th.tensor([[v]]), np.array([7]), np.arange(1))
+    rng = np.random.default_rng(0)
+    s, g, d = store.sample_pairs(2000, max_distance=6, rng=rng, first_visit=True)
+    s_plain, g_plain, y = store.sample_pairs(2000, max_distance=6, rng=np.random.default_rng(0))
+    assert th.equal(s, s_plain) and th.equal(g, g_plain)  # same pairs, only the distance differs
+    seen = set()
+    for sv, gv, dv, yv in zip(s[:, 0].tolist(), g[:, 0].tolist(), d.tolist(), y.tolist()):
+        # recover t from the pair: s index t with traj[t] == sv and traj[t + y] == gv
+        starts = [t for t in range(len(traj)) if traj[t] == sv and t + yv < len(traj) and traj[t + int(yv)] == gv]
+        expected = {next(k for k in range(int(yv) + 1) if traj[t + k] == gv) for t in starts}
+        assert dv in expected
+        seen.add((sv, gv, dv, yv))
+    assert (1.0, 1.0, 0.0, 2.0) in seen  # (s_1, s_3): the goal (1) is the start state itself
+    assert (1.0, 1.0, 0.0, 4.0) in seen  # (s_1, s_5): left and came back; still distance 0
+    assert (0.0, 1.0, 1.0, 5.0) in seen  # (s_0, s_5): state 1 was first reached at step 1
+    assert (1.0, 2.0, 3.0, 3.0) in seen  # (s_1, s_4): nothing earlier; plain gap
+    assert (d <= y).all() and (d < y).any()

@@ -95,6 +95,10 @@ class GoalCuriosityModule:
     :param max_distance: d_max, the largest step gap y of a training pair (s_t, s_{t+y}) (>= 1)
     :param soft_labels: train the predictor on p_skill of eq 16 as a soft target (True) or on labels drawn
         from Bernoulli(p_skill) (False)
+    :param first_visit_distance: dist(s, g) of eq 15 is the number of steps until the goal's observation is
+        first seen after s (0 if s itself is g) rather than the step gap y of the pair: an agent that stays
+        put or comes back would otherwise see (s, s) labelled both mastered (small y) and not mastered
+        (large y). See ``TrajectoryStore.sample_pairs``.
     :param predictor_hidden: hidden layer sizes of the predictor
     :param predictor_lr: Adam learning rate of the predictor
     :param predictor_batch_size: minibatch size of predictor training
@@ -141,6 +145,7 @@ class GoalCuriosityModule:
         label_slope: float = 0.8,
         max_distance: int = 30,
         soft_labels: bool = True,
+        first_visit_distance: bool = True,
         predictor_hidden: Sequence[int] = (512, 512, 512, 512, 512),
         predictor_lr: float = 5e-4,
         predictor_batch_size: int = 128,
@@ -220,6 +225,7 @@ class GoalCuriosityModule:
         self.label_slope = label_slope
         self.max_distance = max_distance
         self.soft_labels = soft_labels
+        self.first_visit_distance = first_visit_distance
         self.predictor_batch_size = predictor_batch_size
         self.predictor_epochs = predictor_epochs
         self.predictor_pairs = predictor_pairs
@@ -571,7 +577,9 @@ class GoalCuriosityModule:
 
     # predictor update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
     def _prepare_predictor(self) -> dict[str, Any] | None:
-        phi_s, phi_g, dist = self.trajectories.sample_pairs(self.predictor_pairs, self.max_distance, self.rng)
+        phi_s, phi_g, dist = self.trajectories.sample_pairs(
+            self.predictor_pairs, self.max_distance, self.rng, first_visit=self.first_visit_distance
+        )
         self.last_predictor_update = self.n_recorded_steps
         keep = th.isfinite(phi_s).all(1) & th.isfinite(phi_g).all(1)  # a broken VAE's embeddings teach nothing
         phi_s, phi_g, dist = phi_s[keep], phi_g[keep], dist[keep]

@@ -103,10 +103,17 @@ class TrajectoryStore:
         self.count = state["count"].numpy().copy()
         self.capacity = int(self.embeddings.shape[0])
 
-    def sample_pairs(self, n_pairs: int, max_distance: int, rng: np.random.Generator) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+    def sample_pairs(
+        self, n_pairs: int, max_distance: int, rng: np.random.Generator, first_visit: bool = False
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """Draw up to ``n_pairs`` pairs (s_t, s_{t+y}) from one episode, y uniform in [1, max_distance].
 
-        :return: phi(s), phi(g), y (float), each with the same first dimension (possibly fewer than n_pairs)
+        :param first_visit: give each pair the distance of the *first* visit of the goal after s_t,
+            ``min {k in [0, y] : phi(s_{t+k}) == phi(s_{t+y})}``, instead of y: the steps the agent actually needed
+            to reach g from s. When the agent stays put or comes back to a state, the plain step gap would label
+            (s, s) as "not mastered" once y exceeds the threshold, contradicting the pairs of the same states at
+            small y; with the first visit an identical state is at distance 0.
+        :return: phi(s), phi(g), distance (float), each with the same first dimension (possibly fewer than n_pairs)
         """
         filled = np.minimum(self.count, self.capacity)
         if self.capacity == 0 or filled.sum() < 2:
@@ -136,4 +143,13 @@ class TrajectoryStore:
         t = np.concatenate(chosen_t, axis=1)
         y = np.concatenate(chosen_y)
         e_t = th.from_numpy(e)
-        return self.embeddings[th.from_numpy(t[0]), e_t], self.embeddings[th.from_numpy(t[1]), e_t], th.from_numpy(y).float()
+        phi_s, phi_g = self.embeddings[th.from_numpy(t[0]), e_t], self.embeddings[th.from_numpy(t[1]), e_t]
+        dist = th.from_numpy(y).float()
+        if first_visit and len(e):
+            # scan k = y-1 .. 0: the last match found is the earliest visit (states of one episode: same ids)
+            for k in range(int(y.max()) - 1, -1, -1):
+                rows = np.nonzero(y > k)[0]
+                slot = th.from_numpy((t[0, rows] + k) % self.capacity)
+                same = (self.embeddings[slot, e_t[rows]] == phi_g[rows]).all(dim=1)
+                dist[th.from_numpy(rows)[same]] = float(k)
+        return phi_s, phi_g, dist

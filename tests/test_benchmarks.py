@@ -59,10 +59,14 @@ def test_csvs_and_summary(se, two_runs):
         assert wall == sorted(wall)
         last = rows[-1]
         assert 0.0 <= float(last["success_rate"]) <= 1.0 and 0.0 <= float(last["mean_return"]) <= 1.0
+        # exploration: episodes that reached the goal also had the key and opened the door
+        assert float(last["success_rate"]) <= float(last["door_rate"]) <= float(last["key_rate"]) <= 1.0
+        assert float(last["key_rate"]) > 0.0  # a near-random policy picks up the key on DoorKey-5x5
         intrinsic = [r["intrinsic_mean"] for r in rows]
         if algo == "ppo":
-            assert all(v == "" for v in intrinsic)
+            assert all(v == "" for v in intrinsic) and all(r["goals"] == "" for r in rows)
         else:
+            assert 1 <= int(rows[-1]["goals"]) <= TINY_IMAGE_CURIOSITY["goal_buffer_size"]
             assert all(0.0 <= float(v) <= 0.1 + 1e-6 for v in intrinsic)  # raw r_gc in [0, alpha / delta]
         assert (out / "checkpoints" / f"{algo}_seed0" / "model_2048.zip").is_file()
     md = (out / "summary.md").read_text()
@@ -139,3 +143,17 @@ def test_steps_to_threshold(se):
     assert se.steps_to_threshold(rows, 0.9, 100) == 300
     assert se.steps_to_threshold(rows, 0.9, 10) == 100
     assert se.steps_to_threshold(rows, 0.99, 100) is None
+
+
+def test_behaviour_compares_agent_and_random_policy(two_runs):
+    behaviour = load_script("behaviour", "benchmarks/behaviour.py")
+    out, _ = two_runs
+    model = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
+    result = behaviour.main([str(model), "--env", "GoCu/DoorKey-5x5-v0", "--episodes", "2", "--seed", "3"])
+    for policy in ("agent", "random"):
+        r = result[policy]
+        assert abs(sum(r["action_share"].values()) - 1.0) < 1e-9
+        assert len(r["cells_per_episode"]) == 2 and all(1 <= c <= 9 for c in r["cells_per_episode"])  # 3x3 floor
+        assert all(0 <= ph <= 3 for ph in r["phases"])
+        assert 0.0 <= r["mean_raw_r_gc"] <= 0.1 + 1e-6  # raw r_gc in [0, alpha / delta]
+    assert len(result["random"]["action_share"]) == 7  # 2 x 250 uniform draws hit every action

@@ -134,7 +134,7 @@ class GoalCuriosityModule:
         goal_buffer_size: int = 1500,
         new_goals_per_episode: int = 7,
         goal_strategy: str = "proportional",
-        goal_novelty: float = 0.25,
+        goal_novelty: float = 0.0,
         alpha: float = 1.0,
         aggregation: str = "max",
         reward_scale: float = 10.0,

@@ -121,6 +121,7 @@ BOX = ChainEnv().observation_space
         (dict(episode_memory=0), r"episode_memory must be >= 1"),
         (dict(predictor_train_freq=0), r"predictor_train_freq must be >= 1"),
         (dict(alpha=float("inf")), r"alpha must be a finite number"),
+        (dict(revisit_decay="half"), r"revisit_decay must be one of \('none', 'inverse_sqrt', 'first_visit'\), got 'half'"),
     ],
 )
 def test_module_refuses_invalid_settings(kwargs, match):
@@ -539,11 +540,13 @@ def test_a_corrupt_or_truncated_model_file_gives_a_clear_error(tmp_path, how):
         PPO_GoCu.load(str(path)[: -len(".zip")])  # the SB3 way, without the suffix
 
 
-def test_a_loaded_module_gives_the_same_rewards_bit_for_bit(tmp_path):
+@pytest.mark.parametrize("decay", ["none", "inverse_sqrt"])
+def test_a_loaded_module_gives_the_same_rewards_bit_for_bit(tmp_path, decay):
     """Memoised embeddings and rewards are part of the state: recomputing them in another batch can change their
-    last bits (a row computed alone is not bit-identical to the same row computed in a batch of two)."""
+    last bits (a row computed alone is not bit-identical to the same row computed in a batch of two). So are the
+    visit counts of the episodes in progress (``revisit_decay``)."""
     space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
-    module = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0)
+    module = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0, revisit_decay=decay)
     module.recording = True
     rng = np.random.default_rng(0)
     frames = rng.integers(0, 256, (12, 16, 16, 3), dtype=np.uint8)
@@ -553,7 +556,7 @@ def test_a_loaded_module_gives_the_same_rewards_bit_for_bit(tmp_path):
     module.begin_episodes(np.arange(2))
     module.step(frames[:1], np.zeros(1, bool), env_indices=np.array([0]))  # frame 0 computed alone, memoised
     th.save(module.state_dict(), tmp_path / "module.pt")
-    loaded = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=1)
+    loaded = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=1, revisit_decay=decay)
     loaded.load_state_dict(th.load(tmp_path / "module.pt", weights_only=True))
     assert not differences(module.state_dict(), loaded.state_dict())
     for m in (module, loaded):

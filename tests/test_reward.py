@@ -14,6 +14,7 @@ from sb3_gocu.curiosity import (
     complexity_score,
     curiosity_reward,
     mastered_probability,
+    revisit_factor,
 )
 
 
@@ -127,3 +128,42 @@ def test_module_reward_path_by_hand():
     raw2, _ = mod.step(np.array([[1.0], [-2.0]], dtype=np.float32), np.zeros(2, bool))
     assert raw2.tolist() == raw.tolist()
     assert mod.pop_reward_stats()["cache_hit_rate"] == pytest.approx(0.5)
+
+
+def test_revisit_factor_by_hand():
+    visits = np.array([1, 2, 4, 9])
+    assert revisit_factor(visits, "none").tolist() == [1.0, 1.0, 1.0, 1.0]
+    assert revisit_factor(visits, "inverse_sqrt").tolist() == pytest.approx([1.0, 1 / math.sqrt(2), 0.5, 1 / 3])
+    assert revisit_factor(visits, "first_visit").tolist() == [1.0, 0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match=r"revisit_decay must be one of \('none', 'inverse_sqrt', 'first_visit'\), got 'half'"):
+        revisit_factor(visits, "half")
+    with pytest.raises(ValueError, match="visits must be >= 1"):
+        revisit_factor(np.array([0]), "none")
+
+
+@pytest.mark.parametrize("decay", ["inverse_sqrt", "first_visit"])
+def test_module_pays_revisits_within_an_episode_by_the_decay(decay):
+    """The n-th visit of a state in an episode pays eq 13 x the revisit factor; a new episode counts from 1 again,
+    and the counts are per env."""
+    space = spaces.Box(-10, 10, (1,), np.float32)
+    mod = GoalCuriosityModule(space, n_goals=1, goal_buffer_size=1, embed_dim=1, predictor_hidden=(1,), seed=0, revisit_decay=decay)
+    mod.vae.embed = lambda x: x
+    mod._sync_encoder()
+    mod.predictor = tiny_predictor()
+    mod._folded = mod.predictor.fold()
+    goal = np.array([[2.0]], dtype=np.float32)
+    mod.goal_buffer.add(goal, th.from_numpy(goal), mod.rng)
+    mod.ensure_envs(2)
+    mod.begin_episodes(np.arange(2))
+    r = (1 - sigmoid(1)) / 10  # s = 1 against g = 2: m = sig(1)
+    a, b = np.array([[1.0], [1.0]], dtype=np.float32), np.array([[-2.0], [1.0]], dtype=np.float32)
+    paid = [mod.step(x, np.array([False, False]))[0] for x in (a, a, b, a)]
+    factor = {"inverse_sqrt": lambda n: 1 / math.sqrt(n), "first_visit": lambda n: float(n == 1)}[decay]
+    # env 0 sees s = 1 at visits 1, 2, then s = -2, then s = 1 a third time; env 1 sees s = 1 four times
+    assert [p[0] for p in paid[:2]] + [paid[3][0]] == pytest.approx([r * factor(1), r * factor(2), r * factor(3)], abs=1e-7)
+    assert [p[1] for p in paid] == pytest.approx([r * factor(n) for n in (1, 2, 3, 4)], abs=1e-7)
+    # the episode of env 0 ends on this step (visit 4 of s = 1); the next one counts from 1 again
+    last, _ = mod.step(a, np.array([True, False]))
+    assert last[0] == pytest.approx(r * factor(4), abs=1e-7)
+    again, _ = mod.step(a, np.array([False, False]))
+    assert again[0] == pytest.approx(r, abs=1e-7) and again[1] == pytest.approx(r * factor(6), abs=1e-7)

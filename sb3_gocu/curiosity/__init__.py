@@ -10,6 +10,7 @@ from sb3_gocu.curiosity.reward import (
     RunningMeanStd,
     complexity_score,
     curiosity_reward,
+    revisit_factor,
     mastered_probability,
 )
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore
@@ -30,6 +31,7 @@ __all__ = [
     "TrajectoryStore",
     "complexity_score",
     "curiosity_reward",
+    "revisit_factor",
     "mastered_probability",
     "select_goal_steps",
     "vae_loss",

@@ -21,7 +21,6 @@ the same episode costs a hash. None of this changes the value computed.
 from __future__ import annotations
 
 import copy
-import copy
 import hashlib
 import threading
 import math
@@ -39,10 +38,12 @@ from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredict
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reward import (
     AGGREGATIONS,
+    REVISIT_DECAYS,
     IntrinsicReturnNormalizer,
     complexity_score,
     curiosity_reward,
     mastered_probability,
+    revisit_factor,
 )
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore
 
@@ -70,6 +71,17 @@ def _cache_from_state(state: dict[str, th.Tensor]) -> dict[bytes, Any]:
     return dict(zip(keys, state["phi"].clone()))
 
 
+def _counts_to_state(counts: dict[bytes, int]) -> dict[str, th.Tensor]:
+    """Visit counts {key bytes: n} as tensors."""
+    keys = np.frombuffer(b"".join(counts), dtype=np.uint8).reshape(len(counts), -1 if counts else 0)
+    return {"keys": th.from_numpy(keys.copy()), "counts": th.tensor(list(counts.values()), dtype=th.int64)}
+
+
+def _counts_from_state(state: dict[str, th.Tensor]) -> dict[bytes, int]:
+    """Inverse of :func:`_counts_to_state`."""
+    return {bytes(k): int(n) for k, n in zip(state["keys"].numpy(), state["counts"].tolist())}
+
+
 class GoalCuriosityModule:
     """Goal-based curiosity (GoCu) on batches of observations.
 
@@ -86,6 +98,11 @@ class GoalCuriosityModule:
     :param alpha: alpha of eq 13
     :param aggregation: h of eq 13, "max" or "mean"
     :param reward_scale: delta of eq 13 (> 0)
+    :param revisit_decay: how much a state seen again within the same episode is paid: ``"none"`` (every visit
+        pays eq 13, the paper), ``"inverse_sqrt"`` (the n-th visit pays r_gc / sqrt(n)) or ``"first_visit"``
+        (only the first visit pays). Visits are counted on the observation's bytes, per env, from the episode's
+        start (at most ``episode_memory`` distinct observations; the count restarts when that is exceeded).
+        See :func:`~sb3_gocu.curiosity.reward.revisit_factor`
     :param intrinsic_gamma: discount of the intrinsic returns, for the normalisation of eq 14 and (in
         PPO_GoCu) the GAE of the intrinsic stream
     :param prior_weight: lambda of eq 15
@@ -138,6 +155,7 @@ class GoalCuriosityModule:
         alpha: float = 1.0,
         aggregation: str = "max",
         reward_scale: float = 10.0,
+        revisit_decay: str = "none",
         intrinsic_gamma: float = 0.99,
         prior_weight: float = 3.0,
         distance_weight: float = 1.0,
@@ -185,6 +203,7 @@ class GoalCuriosityModule:
         _check(goal_novelty >= 0, f"goal_novelty must be >= 0, got {goal_novelty}")
         _check(math.isfinite(alpha), f"alpha must be a finite number, got {alpha}")
         _check(aggregation in AGGREGATIONS, f"aggregation (h) must be one of {AGGREGATIONS}, got {aggregation!r}")
+        _check(revisit_decay in REVISIT_DECAYS, f"revisit_decay must be one of {REVISIT_DECAYS}, got {revisit_decay!r}")
         _check(reward_scale > 0, f"reward_scale (delta) must be > 0, got {reward_scale}")
         _check(0 <= intrinsic_gamma <= 1, f"intrinsic_gamma must be in [0, 1], got {intrinsic_gamma}")
         _check(prior_weight >= 0, f"prior_weight (lambda) must be >= 0, got {prior_weight}")
@@ -218,6 +237,7 @@ class GoalCuriosityModule:
         self.alpha = alpha
         self.aggregation = aggregation
         self.reward_scale = reward_scale
+        self.revisit_decay = revisit_decay
         self.intrinsic_gamma = intrinsic_gamma
         self.prior_weight = prior_weight
         self.distance_weight = distance_weight
@@ -268,6 +288,7 @@ class GoalCuriosityModule:
         self._episode_ids = np.zeros(0, dtype=np.int64)
         self._episodes: list[deque] = []
         self._reward_cache: list[dict] = []
+        self._visit_counts: list[dict[bytes, int]] = []
         self._phi_cache: dict[bytes, th.Tensor] = {}
         self.train_in_background = train_in_background
         self._job: threading.Thread | None = None
@@ -328,6 +349,7 @@ class GoalCuriosityModule:
         self._next_episode_id += extra
         self._episodes += [deque(maxlen=self.episode_memory) for _ in range(extra)]
         self._reward_cache += [{} for _ in range(extra)]
+        self._visit_counts += [{} for _ in range(extra)]
         self.trajectories.ensure_envs(n_envs)
         self.normalizer.ensure_envs(n_envs)
         self.n_envs = n_envs
@@ -340,6 +362,7 @@ class GoalCuriosityModule:
             if self.recording and len(self._episodes[e]):
                 self.finished_episodes.append(np.stack(self._episodes[e]))
             self._episodes[e].clear()
+            self._visit_counts[e].clear()
             self._episode_ids[e] = self._next_episode_id
             self._next_episode_id += 1
         self.sample_goals(env_indices)
@@ -379,8 +402,9 @@ class GoalCuriosityModule:
         return hashlib.blake2b(np.ascontiguousarray(x).data, digest_size=16).digest()
 
     @th.inference_mode()
-    def _score(self, raw: np.ndarray, env_indices: np.ndarray) -> tuple[np.ndarray, th.Tensor]:
-        """Raw r_gc and phi of one observation per env, memoised per episode on the observation's bytes."""
+    def _score(self, raw: np.ndarray, env_indices: np.ndarray) -> tuple[np.ndarray, th.Tensor, list[bytes]]:
+        """Raw r_gc (eq 13) and phi of one observation per env, memoised per episode on the observation's bytes
+        (returned too, as the memo's keys)."""
         n = len(raw)
         rewards = np.empty(n, dtype=np.float32)
         phi = np.empty((n, self.goal_buffer.embeddings.shape[1]), dtype=np.float32)
@@ -415,7 +439,17 @@ class GoalCuriosityModule:
                 if len(cache) >= self.episode_memory:
                     cache.clear()
                 cache[keys[j]] = (rj, pj)
-        return rewards, th.from_numpy(phi)
+        return rewards, th.from_numpy(phi), keys
+
+    def _count_visits(self, keys: list[bytes], env_indices: np.ndarray) -> np.ndarray:
+        """Count this visit of each observation in its env's episode; returns n >= 1 (this visit included)."""
+        visits = np.empty(len(keys), dtype=np.int64)
+        for j, (e, key) in enumerate(zip(env_indices, keys)):
+            counts = self._visit_counts[e]
+            if key not in counts and len(counts) >= self.episode_memory:
+                counts.clear()
+            visits[j] = counts[key] = counts.get(key, 0) + 1
+        return visits
 
     def _embed_cached(self, raw: np.ndarray, rows: np.ndarray, keys: list[bytes]) -> th.Tensor:
         """phi of ``raw[rows]``, memoised on the observation's bytes until the next VAE update."""
@@ -445,7 +479,8 @@ class GoalCuriosityModule:
             observation, not the reset one)
         :param dones: whether each env's episode ended with this observation; such envs get new goals
         :param env_indices: which envs the rows belong to (default: 0..n-1)
-        :return: raw r_gc (eq 13) and normalised r_gc (eq 14), float32 arrays of shape (n,)
+        :return: raw r_gc (eq 13, times the revisit factor of ``revisit_decay``) and normalised r_gc (eq 14),
+            float32 arrays of shape (n,)
         """
         t0 = time.perf_counter()
         raw = self.adapter.extract(observations)
@@ -453,7 +488,9 @@ class GoalCuriosityModule:
         env_indices = np.arange(n) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
         self.ensure_envs(int(env_indices.max()) + 1)
         dones = np.asarray(dones, dtype=bool)
-        rewards, phi = self._score(raw, env_indices)
+        rewards, phi, keys = self._score(raw, env_indices)
+        if self.revisit_decay != "none":
+            rewards = rewards * revisit_factor(self._count_visits(keys, env_indices), self.revisit_decay)
         if not np.all(np.isfinite(rewards)):
             # a broken network must not poison the policy's buffer: no bonus for these states
             self.stats["nonfinite_rewards"] = self.stats.get("nonfinite_rewards", 0) + int((~np.isfinite(rewards)).sum())
@@ -801,6 +838,7 @@ class GoalCuriosityModule:
                 # batch-invariant), so they are saved for a bit-exact resumption
                 "goal_parts": self._goal_parts.clone(),
                 "reward_cache": [_cache_to_state(c) for c in self._reward_cache],
+                "visit_counts": [_counts_to_state(c) for c in self._visit_counts],
             },
             "phi_cache": _cache_to_state(self._phi_cache),
             "counters": {
@@ -852,7 +890,7 @@ class GoalCuriosityModule:
             self._goal_valid = self._goal_valid[:0]
             self._goal_parts = self._goal_parts[:0]
             self._episode_ids = self._episode_ids[:0]
-            self._episodes, self._reward_cache = [], []
+            self._episodes, self._reward_cache, self._visit_counts = [], [], []
             self.trajectories = TrajectoryStore(self.trajectories.total_capacity, self.trajectories.embed_dim, self.trajectories.min_per_env)
             self.normalizer.returns = self.normalizer.returns[:0]
             rng_state = self.rng.bit_generator.state
@@ -874,5 +912,7 @@ class GoalCuriosityModule:
                 self._goal_parts[:] = envs["goal_parts"]
             for cache, saved in zip(self._reward_cache, envs.get("reward_cache", [])):
                 cache.update(_cache_from_state(saved))
+            for counts, saved in zip(self._visit_counts, envs.get("visit_counts", [])):
+                counts.update(_counts_from_state(saved))
         if "phi_cache" in state:
             self._phi_cache.update(_cache_from_state(state["phi_cache"]))

@@ -8,6 +8,7 @@ import numpy as np
 import torch as th
 
 AGGREGATIONS = ("max", "mean")
+REVISIT_DECAYS = ("none", "inverse_sqrt", "first_visit")
 
 
 def curiosity_reward(
@@ -41,6 +42,33 @@ def curiosity_reward(
     else:
         raise ValueError(f"aggregation must be one of {AGGREGATIONS}, got {aggregation!r}")
     return (alpha - h) / scale
+
+
+def revisit_factor(visits: np.ndarray, decay: str) -> np.ndarray:
+    """Share of r_gc paid for the n-th visit of an observation within an episode.
+
+    * ``"none"``: every visit pays r_gc (the paper's eq 13 as it stands);
+    * ``"inverse_sqrt"``: the n-th visit pays ``r_gc / sqrt(n)``;
+    * ``"first_visit"``: only the first visit pays (n = 1), later ones pay 0.
+
+    Eq 13 scores a state by how unlikely its goals are to be reached *by the current policy*, so a policy that
+    stays put (turning into a wall, toggling nothing) makes its own state look unmastered and is paid for
+    staying. A decay with the visit count removes that loop: standing still earns nothing after the first step.
+
+    :param visits: n >= 1 for each state, counted within the current episode (this visit included)
+    :param decay: one of :data:`REVISIT_DECAYS`
+    :return: float32 array of the same shape, in (0, 1]  (or {0, 1} for ``"first_visit"``)
+    """
+    visits = np.asarray(visits)
+    if np.any(visits < 1):
+        raise ValueError(f"visits must be >= 1, got min {visits.min()}")
+    if decay == "none":
+        return np.ones(visits.shape, dtype=np.float32)
+    if decay == "inverse_sqrt":
+        return (1.0 / np.sqrt(visits)).astype(np.float32)
+    if decay == "first_visit":
+        return (visits == 1).astype(np.float32)
+    raise ValueError(f"revisit_decay must be one of {REVISIT_DECAYS}, got {decay!r}")
 
 
 def complexity_score(prior: th.Tensor, distance: th.Tensor, prior_weight: float, distance_weight: float) -> th.Tensor:

@@ -148,3 +148,41 @@ def test_first_visit_distance_is_the_earliest_visit_of_the_goal():
     assert (0.0, 1.0, 1.0, 5.0) in seen  # (s_0, s_5): state 1 was first reached at step 1
     assert (1.0, 2.0, 3.0, 3.0) in seen  # (s_1, s_4): nothing earlier; plain gap
     assert (d <= y).all() and (d < y).any()
+
+
+def test_predictor_pairs_are_deduplicated_with_their_multiplicity_as_weight():
+    """The distinct pairs, weighted by how often each was drawn, give the same loss as the whole draw, and the
+    update sees each distinct pair once per epoch."""
+    from gymnasium import spaces
+
+    from sb3_gocu.curiosity import GoalCuriosityModule
+
+    space = spaces.Box(-10, 10, (1,), np.float32)
+    kwargs = dict(n_goals=1, goal_buffer_size=4, embed_dim=1, predictor_hidden=(8,), predictor_pairs=400, max_distance=3)
+    mod = GoalCuriosityModule(space, seed=0, **kwargs)
+    mod.trajectories.ensure_envs(1)
+    for v in [0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 0.0, 0.0, 1.0, 2.0, 2.0, 2.0] * 3:  # one episode with many repeats
+        mod.trajectories.add(th.tensor([[v]]), np.array([5]), np.arange(1))
+    state = mod.rng.bit_generator.state
+    s_all, g_all, d_all = mod.trajectories.sample_pairs(400, 3, mod.rng, first_visit=True)
+    mod.rng.bit_generator.state = state
+    job = mod._prepare_predictor()
+    assert job["drawn"] == len(s_all) == 400
+    distinct = {(a, b, c) for a, b, c in zip(s_all[:, 0].tolist(), g_all[:, 0].tolist(), d_all.tolist())}
+    assert len(job["phi_s"]) == len(distinct) < 40  # at most 3 x 3 x 4 triples exist
+    assert job["weights"].mean().item() == pytest.approx(1.0)
+    # weight of each distinct pair = its count in the draw x n_distinct / n_drawn
+    for a, b, c, w in zip(job["phi_s"][:, 0].tolist(), job["phi_g"][:, 0].tolist(), job["dist"].tolist(), job["weights"].tolist()):
+        count = int(((s_all[:, 0] == a) & (g_all[:, 0] == b) & (d_all == c)).sum())
+        assert w == pytest.approx(count * len(distinct) / 400, rel=1e-6)
+    # the weighted mean of any per-pair value over the distinct pairs equals its plain mean over the draw
+    f = lambda s, g, d: s * 3 + g * 0.5 - d  # noqa: E731
+    full = f(s_all[:, 0], g_all[:, 0], d_all).mean()
+    weighted = (job["weights"] * f(job["phi_s"][:, 0], job["phi_g"][:, 0], job["dist"])).mean()
+    assert weighted.item() == pytest.approx(full.item(), rel=1e-5)
+    # without de-duplication every drawn pair is kept with weight 1
+    plain = GoalCuriosityModule(space, seed=0, predictor_dedupe=False, **kwargs)
+    plain.trajectories = mod.trajectories
+    plain.rng.bit_generator.state = state
+    job_plain = plain._prepare_predictor()
+    assert len(job_plain["phi_s"]) == 400 and bool((job_plain["weights"] == 1).all())

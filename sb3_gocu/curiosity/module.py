@@ -122,6 +122,9 @@ class GoalCuriosityModule:
     :param predictor_epochs: epochs over the drawn pairs at each predictor update
     :param predictor_pairs: training pairs drawn per predictor update (a bounded sample of all pairs)
     :param predictor_train_freq: P_m, env steps between predictor updates
+    :param predictor_dedupe: train the predictor on the distinct drawn pairs (same phi(s), phi(g) and distance),
+        each weighted by its multiplicity: the same objective as the whole draw, with fewer passes when states
+        repeat (an agent that stays put yields the same pair many times)
     :param embed_dim: size of the embedding phi (the FC layer after the VAE encoder)
     :param latent_dim: size of the VAE latent (mu, sigma)
     :param vae_beta: beta of eq 8
@@ -170,6 +173,7 @@ class GoalCuriosityModule:
         predictor_epochs: int = 15,
         predictor_pairs: int = 8192,
         predictor_train_freq: int = 20_000,
+        predictor_dedupe: bool = True,
         embed_dim: int = 128,
         latent_dim: int = 10,
         vae_beta: float = 1.0,
@@ -250,6 +254,7 @@ class GoalCuriosityModule:
         self.predictor_epochs = predictor_epochs
         self.predictor_pairs = predictor_pairs
         self.predictor_train_freq = predictor_train_freq
+        self.predictor_dedupe = predictor_dedupe
         self.vae_beta = vae_beta
         self.vae_batch_size = vae_batch_size
         self.vae_epochs = vae_epochs
@@ -622,9 +627,25 @@ class GoalCuriosityModule:
         phi_s, phi_g, dist = phi_s[keep], phi_g[keep], dist[keep]
         if len(phi_s) < 2:
             return None
-        return {"phi_s": phi_s.to(self.device), "phi_g": phi_g.to(self.device), "dist": dist.to(self.device)}
+        drawn = len(phi_s)
+        weights = th.ones(drawn)
+        if self.predictor_dedupe:
+            rows = np.ascontiguousarray(th.cat([phi_s, phi_g, dist[:, None]], dim=1).numpy())
+            _, first, counts = np.unique(rows.view(np.dtype((np.void, rows.itemsize * rows.shape[1]))).ravel(), return_index=True, return_counts=True)
+            if len(first) < 2:
+                first, counts = np.arange(drawn), np.ones(drawn, dtype=np.int64)
+            first = th.from_numpy(first)
+            phi_s, phi_g, dist = phi_s[first], phi_g[first], dist[first]
+            weights = th.from_numpy(counts * (len(counts) / counts.sum())).float()  # mean 1 over the distinct pairs
+        return {"phi_s": phi_s.to(self.device), "phi_g": phi_g.to(self.device), "dist": dist.to(self.device),
+                "weights": weights.to(self.device), "drawn": drawn}
 
-    def _fit_predictor(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor) -> dict[str, Any]:
+    def _fit_predictor(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor, weights: th.Tensor | None = None, drawn: int | None = None) -> dict[str, Any]:
+        """Label the pairs (eq 15-16) and fit the predictor to them for ``predictor_epochs`` epochs.
+
+        :param weights: multiplicity of each pair, mean 1 (the loss of a minibatch is the mean of weight x cross-entropy)
+        :param drawn: pairs drawn before de-duplication (for the statistics)
+        """
         t0 = time.perf_counter()
         with th.no_grad():
             prior = 1.0 - self.predictor.mastery(phi_s, phi_g)  # decision 1: belief that the skill is not mastered
@@ -635,6 +656,7 @@ class GoalCuriosityModule:
         snapshot = self._snapshot(self.predictor, self.predictor_optimizer)
         self.predictor.train()
         n = len(phi_s)
+        weights = th.ones(n, device=phi_s.device) if weights is None else weights
         losses, accs, skipped = [], [], 0
         for _ in range(self.predictor_epochs):
             order = th.randperm(n, generator=self._torch_gen)
@@ -643,8 +665,8 @@ class GoalCuriosityModule:
                 if len(idx) < 2:  # batch norm needs two samples
                     continue
                 logp = th.log_softmax(self.predictor(phi_s[idx], phi_g[idx]), dim=-1)
-                t = target[idx]
-                loss = -(t * logp[:, 1] + (1 - t) * logp[:, 0]).mean()
+                t, w = target[idx], weights[idx]
+                loss = -(w * (t * logp[:, 1] + (1 - t) * logp[:, 0])).mean()
                 if not th.isfinite(loss):
                     skipped += 1
                     continue
@@ -655,10 +677,11 @@ class GoalCuriosityModule:
                     continue
                 self.predictor_optimizer.step()
                 losses.append(loss.item())
-                accs.append(((logp[:, 1] > logp[:, 0]) == (t > 0.5)).float().mean().item())
+                accs.append(float((w * ((logp[:, 1] > logp[:, 0]) == (t > 0.5)).float()).sum() / w.sum()))
         self.predictor.eval()
         return {"snapshot": snapshot, "losses": losses, "accs": accs, "skipped": skipped, "n": n,
-                "mastered": float((p_skill > 0.5).float().mean()), "time": time.perf_counter() - t0}
+                "drawn": n if drawn is None else drawn,
+                "mastered": float((weights * (p_skill > 0.5).float()).sum() / weights.sum()), "time": time.perf_counter() - t0}
 
     def _finish_predictor(self, fit: dict[str, Any]) -> dict[str, float]:
         t0 = time.perf_counter()
@@ -672,7 +695,8 @@ class GoalCuriosityModule:
             "predictor_loss": float(np.mean(fit["losses"])) if fit["losses"] else float("nan"),
             "predictor_accuracy": float(np.mean(fit["accs"])) if fit["accs"] else float("nan"),
             "mastered_fraction": fit["mastered"],
-            "predictor_pairs": float(fit["n"]),
+            "predictor_pairs": float(fit["drawn"]),
+            "predictor_distinct_pairs": float(fit["n"]),
             "predictor_skipped_updates": float(fit["skipped"]),
             "predictor_time": dt,
         }

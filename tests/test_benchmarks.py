@@ -157,3 +157,23 @@ def test_behaviour_compares_agent_and_random_policy(two_runs):
         assert all(0 <= ph <= 3 for ph in r["phases"])
         assert 0.0 <= r["mean_raw_r_gc"] <= 0.1 + 1e-6  # raw r_gc in [0, alpha / delta]
     assert len(result["random"]["action_share"]) == 7  # 2 x 250 uniform draws hit every action
+
+
+def test_predictor_epochs_probe_replays_the_update_per_budget(two_runs):
+    """Every budget starts from the checkpoint's predictor; the largest budget's last epoch is the reference."""
+    probe = load_script("predictor_epochs", "benchmarks/predictor_epochs.py")
+    out, _ = two_runs
+    model = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
+    result = probe.main([str(model), "--pairs", "64", "256", "--epochs", "3", "--val-pairs", "128", "--threads", "1"])
+    curves = result["curves"]
+    assert sorted(curves) == [64, 256]
+    for budget, rows in curves.items():
+        assert [r["epoch"] for r in rows] == [1, 2, 3]
+        assert all(0 < r["distinct_pairs"] <= budget for r in rows)
+        assert [r["train_s"] for r in rows] == sorted(r["train_s"] for r in rows)
+        assert all(0.0 <= r["val_acc"] <= 1.0 and r["val_loss"] > 0 for r in rows)
+    assert curves[256][-1]["mean_abs_diff_ref"] == 0.0  # the reference against itself
+    assert curves[64][-1]["mean_abs_diff_ref"] > 0.0  # trained on other pairs: another predictor
+    # the same budget replayed twice gives the same predictor (same draws, same generator)
+    again = probe.main([str(model), "--pairs", "64", "256", "--epochs", "3", "--val-pairs", "128", "--threads", "1"])
+    assert again["curves"][64][-1]["val_loss"] == curves[64][-1]["val_loss"]

@@ -27,7 +27,7 @@ import math
 import time
 import warnings
 from collections import deque
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch as th
@@ -640,25 +640,37 @@ class GoalCuriosityModule:
         return {"phi_s": phi_s.to(self.device), "phi_g": phi_g.to(self.device), "dist": dist.to(self.device),
                 "weights": weights.to(self.device), "drawn": drawn}
 
-    def _fit_predictor(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor, weights: th.Tensor | None = None, drawn: int | None = None) -> dict[str, Any]:
+    @th.no_grad()
+    def label_pairs(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor) -> th.Tensor:
+        """p_skill of eq 15-16 for each pair, with the predictor's current belief as the prior (decision 1:
+        ``prior = 1 - m(phi(s), phi(g))``, the belief that the skill is *not* mastered)."""
+        prior = 1.0 - self.predictor.mastery(phi_s, phi_g)
+        return mastered_probability(complexity_score(prior, dist, self.prior_weight, self.distance_weight), self.label_threshold, self.label_slope)
+
+    def _fit_predictor(
+        self,
+        phi_s: th.Tensor,
+        phi_g: th.Tensor,
+        dist: th.Tensor,
+        weights: th.Tensor | None = None,
+        drawn: int | None = None,
+        on_epoch: Callable[[int], None] | None = None,
+    ) -> dict[str, Any]:
         """Label the pairs (eq 15-16) and fit the predictor to them for ``predictor_epochs`` epochs.
 
         :param weights: multiplicity of each pair, mean 1 (the loss of a minibatch is the mean of weight x cross-entropy)
         :param drawn: pairs drawn before de-duplication (for the statistics)
+        :param on_epoch: called with the epoch number after each epoch (the predictor is in train mode), for probes
         """
         t0 = time.perf_counter()
-        with th.no_grad():
-            prior = 1.0 - self.predictor.mastery(phi_s, phi_g)  # decision 1: belief that the skill is not mastered
-            p_skill = mastered_probability(
-                complexity_score(prior, dist, self.prior_weight, self.distance_weight), self.label_threshold, self.label_slope
-            )
-            target = p_skill if self.soft_labels else th.bernoulli(p_skill.nan_to_num(0.5), generator=self._torch_gen)
+        p_skill = self.label_pairs(phi_s, phi_g, dist)
+        target = p_skill if self.soft_labels else th.bernoulli(p_skill.nan_to_num(0.5), generator=self._torch_gen)
         snapshot = self._snapshot(self.predictor, self.predictor_optimizer)
         self.predictor.train()
         n = len(phi_s)
         weights = th.ones(n, device=phi_s.device) if weights is None else weights
         losses, accs, skipped = [], [], 0
-        for _ in range(self.predictor_epochs):
+        for epoch in range(self.predictor_epochs):
             order = th.randperm(n, generator=self._torch_gen)
             for start in range(0, n, self.predictor_batch_size):
                 idx = order[start : start + self.predictor_batch_size]
@@ -678,6 +690,8 @@ class GoalCuriosityModule:
                 self.predictor_optimizer.step()
                 losses.append(loss.item())
                 accs.append(float((w * ((logp[:, 1] > logp[:, 0]) == (t > 0.5)).float()).sum() / w.sum()))
+            if on_epoch is not None:
+                on_epoch(epoch)
         self.predictor.eval()
         return {"snapshot": snapshot, "losses": losses, "accs": accs, "skipped": skipped, "n": n,
                 "drawn": n if drawn is None else drawn,

@@ -4,8 +4,9 @@
         --pairs 1024 2048 4096 8192 --epochs 15 --threads 2 --seed 0
 
 Loads a PPO_GoCu checkpoint and replays the predictor update that was due next, on the trajectories the
-module holds (the last P_m steps), once per ``--pairs`` budget, each time from the checkpoint's predictor and
-optimiser state:
+module holds (the last P_m steps; with ``--collect STEPS``, on STEPS fresh steps of the checkpoint's own policy
+instead, e.g. when a VAE update has just cleared them), once per ``--pairs`` budget, each time from the
+checkpoint's predictor and optimiser state:
 
 * training pairs: ``predictor_pairs = P`` drawn as in training (``--seed``), de-duplicated as in training;
 * validation pairs: ``--val-pairs`` drawn with another generator (``--seed + 1``) from the same trajectories, labelled
@@ -40,10 +41,32 @@ def soft_cross_entropy(m: th.Tensor, target: th.Tensor) -> float:
     return float(-(target * m.log() + (1 - target) * (1 - m).log()).mean())
 
 
-def probe(path: str, pairs: Sequence[int], epochs: int, val_pairs: int, seed: int) -> dict[str, Any]:
+def collect(model: PPO_GoCu, env_id: str, steps: int, n_envs: int, seed: int) -> None:
+    """Play the model's stochastic policy for ``steps`` env steps; its module records the trajectories (the
+    memory bank and the normaliser move too, as in training; nothing is trained)."""
+    from stable_baselines3.common.env_util import make_vec_env
+
+    model.set_env(make_vec_env(env_id, n_envs=n_envs, seed=seed))
+    env = model.get_env()
+    mod = model.curiosity
+    mod.trajectories.clear()
+    mod.recording = True
+    obs = env.reset()
+    for _ in range(-(-steps // n_envs)):
+        actions, _ = model.predict(obs, deterministic=False)
+        obs, _, _, _ = env.step(actions)
+    mod.recording = False
+
+
+def probe(path: str, pairs: Sequence[int], epochs: int, val_pairs: int, seed: int, env_id: str | None = None,
+          collect_steps: int = 0, n_envs: int = 16) -> dict[str, Any]:
     model = PPO_GoCu.load(path, device="cpu")
     mod = model.curiosity
     assert mod is not None
+    if collect_steps:
+        collect(model, env_id or "GoCu/DoorKey-8x8-v0", collect_steps, n_envs, seed)
+    if len(mod.trajectories) < 2:
+        raise SystemExit(f"{path}: the module holds no trajectories (a VAE update clears them); use --collect STEPS")
     start = copy.deepcopy((mod.predictor.state_dict(), mod.predictor_optimizer.state_dict()))
     vs, vg, vd = mod.trajectories.sample_pairs(val_pairs, mod.max_distance, np.random.default_rng(seed + 1), first_visit=mod.first_visit_distance)
     mod.predictor.eval()
@@ -59,7 +82,7 @@ def probe(path: str, pairs: Sequence[int], epochs: int, val_pairs: int, seed: in
         mod._torch_gen.manual_seed(seed)
         mod.predictor_pairs, mod.predictor_epochs = budget, epochs
         job = mod._prepare_predictor()
-        assert job is not None, "the checkpoint holds no trajectories to draw pairs from"
+        assert job is not None
         rows: list[dict[str, float]] = []
         ms: list[th.Tensor] = []
         clock = {"t": time.perf_counter(), "train": 0.0}
@@ -103,10 +126,17 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--val-pairs", type=int, default=8192)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    p.add_argument("--collect", type=int, default=0, metavar="STEPS",
+                   help="first play the model's policy for STEPS env steps on --env and replay the update on those trajectories "
+                        "(default 0: use the trajectories saved in the checkpoint)")
+    p.add_argument("--env", default="GoCu/DoorKey-8x8-v0", help="env id for --collect")
+    p.add_argument("--n-envs", type=int, default=16, help="envs for --collect")
     args = p.parse_args(argv)
     th.set_num_threads(args.threads)
-    out = probe(args.model, args.pairs, args.epochs, args.val_pairs, args.seed)
+    out = probe(args.model, args.pairs, args.epochs, args.val_pairs, args.seed, args.env, args.collect, args.n_envs)
     print("command: python " + " ".join(sys.argv))
+    if args.collect:
+        print(f"trajectories: {args.collect} steps of the checkpoint's policy on {args.env}, {args.n_envs} envs, seed {args.seed}")
     print(f"machine: {platform.machine()}, {th.get_num_threads()} torch threads, torch {th.__version__}; checkpoint at {out['steps']} steps")
     print(f"validation pairs: {args.val_pairs}, labelled mastered {out['labelled_mastered']:.3f}; before the update: "
           f"loss {out['start_val_loss']:.4f}, accuracy {out['start_val_acc']:.3f}")

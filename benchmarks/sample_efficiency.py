@@ -141,6 +141,7 @@ class SampleEfficiencyCallback(BaseCallback):
         self.run = run
         self._sum = self._sq = self._norm = 0.0
         self._count = 0
+        self._infos: list[list[dict]] = []
         self._t_rollout = time.perf_counter()
         self._steps_rollout = 0
 
@@ -150,23 +151,29 @@ class SampleEfficiencyCallback(BaseCallback):
             run.checkpoint(self.model)
         self._sum = self._sq = self._norm = 0.0
         self._count = 0
+        self._infos = []
         self._t_rollout = time.perf_counter()
         self._steps_rollout = self.num_timesteps
 
     def _on_step(self) -> bool:
-        for info in self.locals["infos"]:
+        infos = self.locals["infos"]
+        for info in infos:
             ep = info.get("episode")
             if ep is not None:
                 self.run.add_episode(float(ep["r"]), info.get("task_phase"))
-            raw = info.get("gocu_raw_reward")
-            if raw is not None:
-                self._sum += raw
-                self._sq += raw * raw
-                self._norm += info.get("gocu_reward", float("nan"))
-                self._count += 1
+        self._infos.append(infos)  # PPO_GoCu fills a step's gocu_* entries one step later (scoring in a worker thread)
         return True
 
     def _on_rollout_end(self) -> None:
+        for infos in self._infos:
+            for info in infos:
+                raw = info.get("gocu_raw_reward")
+                if raw is not None:
+                    self._sum += raw
+                    self._sq += raw * raw
+                    self._norm += info.get("gocu_reward", float("nan"))
+                    self._count += 1
+        self._infos = []
         if self._count:
             mean = self._sum / self._count
             std = math.sqrt(max(0.0, self._sq / self._count - mean * mean))

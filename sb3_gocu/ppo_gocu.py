@@ -22,6 +22,7 @@ import json
 import pathlib
 import pickle
 import zipfile
+from collections import deque
 from typing import Any, ClassVar, Iterable, TypeVar
 
 import numpy as np
@@ -40,7 +41,7 @@ from sb3_gocu.callbacks import GoCuCallback
 from sb3_gocu.checkpoints import GlobalRNGState, check_model_file, read_env_state, save_model
 from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.policies import GoCuActorCriticCnnPolicy, GoCuActorCriticPolicy, GoCuMultiInputActorCriticPolicy
-from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module
+from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module, find_gocu_wrappers
 
 SelfPPOGoCu = TypeVar("SelfPPOGoCu", bound="PPO_GoCu")
 
@@ -62,6 +63,11 @@ class PPO_GoCu(PPO):
         limit and the return at 0.0 at 120k steps, where the non-episodic stream learns the task
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` (``n_goals``,
         ``goal_strategy``, ``reward_scale``, ...); its ``intrinsic_gamma`` is the curiosity stream's discount
+    :param async_scoring: score the curiosity of each rollout step in the module's worker thread while the envs
+        take the next step (the predictor's matrix products release the GIL, env stepping is Python on the other
+        core). The rewards are the same bit for bit; a step's ``infos["gocu_*"]`` entries are written one step
+        later (at the rollout end for the last step), so a callback reading them in ``on_step`` sees the previous
+        step's. Used when the training env has one :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``)
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -79,12 +85,14 @@ class PPO_GoCu(PPO):
         intrinsic_coef: float = 0.25,
         intrinsic_episodic: bool = False,
         curiosity_kwargs: dict[str, Any] | None = None,
+        async_scoring: bool = True,
         **kwargs: Any,
     ) -> None:
         if not intrinsic_coef >= 0:
             raise ValueError(f"intrinsic_coef (sigma) must be >= 0, got {intrinsic_coef}")
         self.intrinsic_coef = intrinsic_coef
         self.intrinsic_episodic = intrinsic_episodic
+        self.async_scoring = async_scoring
         if curiosity_kwargs is not None and not isinstance(curiosity_kwargs, dict):
             raise TypeError(
                 f"curiosity_kwargs must be a dict of GoalCuriosityModule keywords, got {type(curiosity_kwargs).__name__} "
@@ -228,54 +236,74 @@ class PPO_GoCu(PPO):
         if self.use_sde:
             self.policy.reset_noise(env.num_envs)
         callback.on_rollout_start()
+        gocu = self._deferring_wrapper(env)
+        waiting: deque[tuple[tuple, int | None]] = deque()  # steps whose r_gc is still being scored: (deferred, buffer row)
+        if gocu is not None:
+            gocu.defer = True
+        try:
+            while n_steps < n_rollout_steps:
+                if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+                    self.policy.reset_noise(env.num_envs)
+                with th.no_grad():
+                    obs_tensor = obs_as_tensor(self._last_obs, self.device)  # type: ignore[arg-type]
+                    actions, values, log_probs = self.policy(obs_tensor)  # values: (n_envs, 2)
+                actions = actions.cpu().numpy()
+                clipped_actions = actions
+                if isinstance(self.action_space, spaces.Box):
+                    if self.policy.squash_output:
+                        clipped_actions = self.policy.unscale_action(clipped_actions)
+                    else:
+                        clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
 
-        while n_steps < n_rollout_steps:
-            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
-                self.policy.reset_noise(env.num_envs)
-            with th.no_grad():
-                obs_tensor = obs_as_tensor(self._last_obs, self.device)  # type: ignore[arg-type]
-                actions, values, log_probs = self.policy(obs_tensor)  # values: (n_envs, 2)
-            actions = actions.cpu().numpy()
-            clipped_actions = actions
-            if isinstance(self.action_space, spaces.Box):
-                if self.policy.squash_output:
-                    clipped_actions = self.policy.unscale_action(clipped_actions)
+                # with a deferring wrapper, r_gc of this step is scored in a worker thread while the envs take the
+                # next step; it is added to its buffer row then (the row holds 0 or the truncation bootstrap until then)
+                new_obs, rewards, dones, infos = env.step(clipped_actions)
+                if gocu is not None:
+                    waiting.append((gocu.deferred, None))
+                    gocu.deferred = None
+                    while len(waiting) > 1:
+                        self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
+                    intrinsic = np.zeros(env.num_envs, dtype=np.float32)
                 else:
-                    clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
+                    intrinsic = np.array([info["gocu_reward"] for info in infos], dtype=np.float32)
+                self.num_timesteps += env.num_envs
 
-            new_obs, rewards, dones, infos = env.step(clipped_actions)
-            intrinsic = np.array([info["gocu_reward"] for info in infos], dtype=np.float32)
-            self.num_timesteps += env.num_envs
+                callback.update_locals(locals())
+                if not callback.on_step():
+                    return False
+                self._update_info_buffer(infos, dones)
+                n_steps += 1
+                if isinstance(self.action_space, spaces.Discrete):
+                    actions = actions.reshape(-1, 1)
 
-            callback.update_locals(locals())
-            if not callback.on_step():
-                return False
-            self._update_info_buffer(infos, dones)
-            n_steps += 1
-            if isinstance(self.action_space, spaces.Discrete):
-                actions = actions.reshape(-1, 1)
+                # time-limit truncation: bootstrap each stream with its own head and discount
+                for idx, done in enumerate(dones):
+                    if done and infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False):
+                        terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
+                        with th.no_grad():
+                            terminal_value = self.policy.predict_values(terminal_obs)[0]  # type: ignore[arg-type]
+                        rewards[idx] += self.gamma * terminal_value[0].item()
+                        if self.intrinsic_episodic:
+                            intrinsic[idx] += rollout_buffer.intrinsic_gamma * terminal_value[1].item()
 
-            # time-limit truncation: bootstrap each stream with its own head and discount
-            for idx, done in enumerate(dones):
-                if done and infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False):
-                    terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
-                    with th.no_grad():
-                        terminal_value = self.policy.predict_values(terminal_obs)[0]  # type: ignore[arg-type]
-                    rewards[idx] += self.gamma * terminal_value[0].item()
-                    if self.intrinsic_episodic:
-                        intrinsic[idx] += rollout_buffer.intrinsic_gamma * terminal_value[1].item()
-
-            rollout_buffer.add(
-                self._last_obs,  # type: ignore[arg-type]
-                actions,
-                rewards,
-                self._last_episode_starts,  # type: ignore[arg-type]
-                values,
-                log_probs,
-                intrinsic_reward=intrinsic,
-            )
-            self._last_obs = new_obs  # type: ignore[assignment]
-            self._last_episode_starts = dones
+                rollout_buffer.add(
+                    self._last_obs,  # type: ignore[arg-type]
+                    actions,
+                    rewards,
+                    self._last_episode_starts,  # type: ignore[arg-type]
+                    values,
+                    log_probs,
+                    intrinsic_reward=intrinsic,
+                )
+                if gocu is not None:
+                    waiting[-1] = (waiting[-1][0], rollout_buffer.pos - 1)
+                self._last_obs = new_obs  # type: ignore[assignment]
+                self._last_episode_starts = dones
+        finally:
+            if gocu is not None:
+                while waiting:
+                    self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
+                gocu.defer = False
 
         with th.no_grad():
             values = self.policy.predict_values(obs_as_tensor(new_obs, self.device))  # type: ignore[arg-type]
@@ -283,6 +311,23 @@ class PPO_GoCu(PPO):
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
+
+    def _deferring_wrapper(self, env: VecEnv) -> GoCuVecEnvWrapper | None:
+        """The env's GoCu wrapper if its scoring can overlap the next env step: ``async_scoring``, one
+        :class:`GoCuVecEnvWrapper` in ``"separate"`` mode holding this model's module, and no per-env wrappers."""
+        if not getattr(self, "async_scoring", False):
+            return None
+        wrappers = find_gocu_wrappers(env)
+        if len(wrappers) == 1 and isinstance(wrappers[0], GoCuVecEnvWrapper) and wrappers[0].mode == "separate" and wrappers[0].module is self.curiosity:
+            return wrappers[0]
+        return None
+
+    @staticmethod
+    def _take_intrinsic(gocu: GoCuVecEnvWrapper, rollout_buffer: GoCuRolloutBuffer | GoCuDictRolloutBuffer, deferred: tuple, row: int | None) -> None:
+        """Collect a deferred step's r_gc into its ``infos`` and, once stored, into its buffer row."""
+        normalized = gocu.take_deferred(deferred)
+        if row is not None:
+            rollout_buffer.intrinsic_rewards[row] += normalized
 
     def learn(
         self: SelfPPOGoCu,

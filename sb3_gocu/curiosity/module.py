@@ -23,6 +23,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 import math
 import time
 import warnings
@@ -80,6 +81,27 @@ def _counts_to_state(counts: dict[bytes, int]) -> dict[str, th.Tensor]:
 def _counts_from_state(state: dict[str, th.Tensor]) -> dict[bytes, int]:
     """Inverse of :func:`_counts_to_state`."""
     return {bytes(k): int(n) for k, n in zip(state["keys"].numpy(), state["counts"].tolist())}
+
+
+class ScoringTicket:
+    """One batch of states handed to :meth:`GoalCuriosityModule.submit`, until its rewards are collected."""
+
+    def __init__(self, n: int, embed_dim: int) -> None:
+        self.rewards = np.zeros(n, dtype=np.float32)  # raw r_gc (eq 13), filled at collection
+        self.phi = np.zeros((n, embed_dim), dtype=np.float32)
+        self.miss = np.zeros(0, dtype=np.int64)  # rows scored by the predictor
+        self.pending: list[tuple[int, ScoringTicket, int]] = []  # (row, earlier ticket, its row): same state, same episode
+        self.env_indices = np.zeros(0, dtype=np.int64)
+        self.keys: list[bytes] = []
+        self.episode_ids = np.zeros(0, dtype=np.int64)
+        self.valid: th.Tensor | None = None
+        self.goal_parts: th.Tensor | None = None
+        self.folded: FoldedPredictor | None = None
+        self.factor: np.ndarray | None = None  # revisit factor
+        self.recording = False
+        self.future: Future | None = None
+        self.compute_time = 0.0
+        self.result: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class GoalCuriosityModule:
@@ -294,6 +316,9 @@ class GoalCuriosityModule:
         self._episodes: list[deque] = []
         self._reward_cache: list[dict] = []
         self._visit_counts: list[dict[bytes, int]] = []
+        self._pending: list[dict[bytes, tuple[ScoringTicket, int]]] = []  # states of each episode being scored
+        self._outstanding: deque[ScoringTicket] = deque()
+        self._scorer: ThreadPoolExecutor | None = None
         self._phi_cache: dict[bytes, th.Tensor] = {}
         self.train_in_background = train_in_background
         self._job: threading.Thread | None = None
@@ -319,6 +344,7 @@ class GoalCuriosityModule:
         self.cache_hits = 0
         self.cache_lookups = 0
         self.time_inference = 0.0
+        self.time_inference_background = 0.0  # scoring in the worker thread (overlaps the caller's work)
         self.time_training = 0.0
         self.time_vae = 0.0
         self.time_predictor = 0.0
@@ -341,6 +367,23 @@ class GoalCuriosityModule:
         phi = self.embed(raw_states)
         return self._folded.mastery_from_parts(self._folded.state_part(phi), parts.expand(len(phi), *parts.shape))
 
+    @th.inference_mode()
+    def curiosity(self, observations: Any, env_indices: np.ndarray | None = None) -> np.ndarray:
+        """Raw r_gc (eq 13) of a batch of states against the current goals of their envs, computed afresh:
+        nothing is recorded, memoised or counted (for probes and maps)."""
+        raw = self.adapter.extract(observations)
+        env_indices = np.arange(len(raw)) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
+        self.ensure_envs(int(env_indices.max()) + 1)
+        envs = th.from_numpy(env_indices)
+        valid = self._goal_valid[envs]
+        r = th.full((len(raw),), self.alpha / self.reward_scale)
+        rows = valid[:, 0].nonzero()[:, 0]
+        if len(rows):
+            phi = self.embed(raw[rows.numpy()])
+            mastery = self._folded.mastery_from_parts(self._folded.state_part(phi), self._goal_parts[envs[rows]])
+            r[rows] = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale, valid=valid[rows])
+        return r.numpy()
+
     def ensure_envs(self, n_envs: int) -> None:
         """Grow the per-env state to ``n_envs`` environments (new envs get goals at once)."""
         old = self.n_envs
@@ -355,6 +398,7 @@ class GoalCuriosityModule:
         self._episodes += [deque(maxlen=self.episode_memory) for _ in range(extra)]
         self._reward_cache += [{} for _ in range(extra)]
         self._visit_counts += [{} for _ in range(extra)]
+        self._pending += [{} for _ in range(extra)]
         self.trajectories.ensure_envs(n_envs)
         self.normalizer.ensure_envs(n_envs)
         self.n_envs = n_envs
@@ -368,6 +412,7 @@ class GoalCuriosityModule:
                 self.finished_episodes.append(np.stack(self._episodes[e]))
             self._episodes[e].clear()
             self._visit_counts[e].clear()
+            self._pending[e].clear()
             self._episode_ids[e] = self._next_episode_id
             self._next_episode_id += 1
         self.sample_goals(env_indices)
@@ -406,55 +451,74 @@ class GoalCuriosityModule:
     def _key(x: np.ndarray) -> bytes:
         return hashlib.blake2b(np.ascontiguousarray(x).data, digest_size=16).digest()
 
-    @th.inference_mode()
-    def _score(self, raw: np.ndarray, env_indices: np.ndarray) -> tuple[np.ndarray, th.Tensor, list[bytes]]:
-        """Raw r_gc (eq 13) and phi of one observation per env, memoised per episode on the observation's bytes
-        (returned too, as the memo's keys)."""
+    def _lookup(self, raw: np.ndarray, env_indices: np.ndarray, keys: list[bytes]) -> "ScoringTicket":
+        """Memo lookups of one observation per env (main thread): rewards known from the episode's memo, rows
+        equal to a row still being scored (``pending``), and the rows to score (``miss``), with their phi."""
         n = len(raw)
-        rewards = np.empty(n, dtype=np.float32)
-        phi = np.empty((n, self.goal_buffer.embeddings.shape[1]), dtype=np.float32)
-        keys = [self._key(x) for x in raw]
+        ticket = ScoringTicket(n, self.goal_buffer.embeddings.shape[1])
+        ticket.env_indices, ticket.keys = env_indices, keys
+        ticket.episode_ids = self._episode_ids[env_indices].copy()
         miss = []
         for j, (e, key) in enumerate(zip(env_indices, keys)):
             hit = self._reward_cache[e].get(key)
-            if hit is None:
-                miss.append(j)
-            else:
-                rewards[j], phi[j] = hit
+            if hit is not None:
+                ticket.rewards[j], ticket.phi[j] = hit
+                continue
+            earlier = self._pending[e].get(key)
+            if earlier is not None:  # seen earlier in this episode, its score not taken yet
+                ticket.pending.append((j, earlier[0], earlier[1]))
+                ticket.phi[j] = earlier[0].phi[earlier[1]]
+                continue
+            miss.append(j)
         self._cache_lookups += n
         self._cache_hits += n - len(miss)
         self.cache_lookups += n
         self.cache_hits += n - len(miss)
         if miss:
             m_idx = np.asarray(miss)
+            ticket.miss = m_idx
+            ticket.phi[m_idx] = self._embed_cached(raw, m_idx, keys).numpy()
             envs = th.from_numpy(env_indices[m_idx])
-            phi_m = self._embed_cached(raw, m_idx, keys)
-            valid = self._goal_valid[envs]
-            r = th.full((len(m_idx),), self.alpha / self.reward_scale)  # no goal yet: h = 0
-            with_goals = valid[:, 0]
-            if bool(with_goals.any()):
-                rows = with_goals.nonzero()[:, 0]
-                mastery = self._folded.mastery_from_parts(self._folded.state_part(phi_m[rows]), self._goal_parts[envs[rows]])
-                r[rows] = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale, valid=valid[rows])
-            r_np, phi_np = r.numpy(), phi_m.numpy()
-            rewards[m_idx] = r_np
-            phi[m_idx] = phi_np
-            for j, rj, pj in zip(miss, r_np, phi_np):
-                cache = self._reward_cache[env_indices[j]]
-                if len(cache) >= self.episode_memory:
-                    cache.clear()
-                cache[keys[j]] = (rj, pj)
-        return rewards, th.from_numpy(phi), keys
+            ticket.valid = self._goal_valid[envs].clone()
+            ticket.goal_parts = self._goal_parts[envs].clone()  # the episode's goals: a new episode may start before scoring
+            ticket.folded = self._folded
+            for j in miss:
+                self._pending[env_indices[j]][keys[j]] = (ticket, j)
+        return ticket
 
-    def _count_visits(self, keys: list[bytes], env_indices: np.ndarray) -> np.ndarray:
-        """Count this visit of each observation in its env's episode; returns n >= 1 (this visit included)."""
-        visits = np.empty(len(keys), dtype=np.int64)
-        for j, (e, key) in enumerate(zip(env_indices, keys)):
-            counts = self._visit_counts[e]
-            if key not in counts and len(counts) >= self.episode_memory:
-                counts.clear()
-            visits[j] = counts[key] = counts.get(key, 0) + 1
-        return visits
+    @th.inference_mode()
+    def _compute(self, ticket: "ScoringTicket") -> np.ndarray:
+        """Eq 13 for the ``miss`` rows of a ticket (pure: reads only what the ticket captured; any thread)."""
+        t0 = time.perf_counter()
+        m_idx = ticket.miss
+        r = th.full((len(m_idx),), self.alpha / self.reward_scale)  # no goal yet: h = 0
+        with_goals = ticket.valid[:, 0]
+        if bool(with_goals.any()):
+            rows = with_goals.nonzero()[:, 0]
+            phi_m = th.from_numpy(ticket.phi[m_idx[rows.numpy()]])
+            mastery = ticket.folded.mastery_from_parts(ticket.folded.state_part(phi_m), ticket.goal_parts[rows])
+            r[rows] = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale, valid=ticket.valid[rows])
+        ticket.compute_time = time.perf_counter() - t0
+        return r.numpy()
+
+    def _commit(self, ticket: "ScoringTicket", computed: np.ndarray) -> None:
+        """Fill a ticket's rewards (main thread, in submission order) and memoise the scored rows in their
+        episode's memo, unless that episode has ended since."""
+        env_indices, keys = ticket.env_indices, ticket.keys
+        if len(ticket.miss):
+            ticket.rewards[ticket.miss] = computed
+        for j, earlier, row in ticket.pending:
+            ticket.rewards[j] = earlier.rewards[row]
+        for j, rj in zip(ticket.miss, ticket.rewards[ticket.miss]):
+            e = env_indices[j]
+            if self._pending[e].get(keys[j], (None,))[0] is ticket:
+                del self._pending[e][keys[j]]
+            if self._episode_ids[e] != ticket.episode_ids[j]:
+                continue  # that episode is over: its memo was dropped
+            cache = self._reward_cache[e]
+            if len(cache) >= self.episode_memory:
+                cache.clear()
+            cache[keys[j]] = (rj, ticket.phi[j])
 
     def _embed_cached(self, raw: np.ndarray, rows: np.ndarray, keys: list[bytes]) -> th.Tensor:
         """phi of ``raw[rows]``, memoised on the observation's bytes until the next VAE update."""
@@ -468,13 +532,24 @@ class GoalCuriosityModule:
                 out[i] = hit
         if todo:
             todo_rows = rows[np.asarray(todo)]
-            fresh = self._encoder.embed(self.adapter.to_tensor(raw[todo_rows], self.device)).cpu()
+            with th.inference_mode():
+                fresh = self._encoder.embed(self.adapter.to_tensor(raw[todo_rows], self.device)).cpu()
             out[th.as_tensor(todo)] = fresh
             if len(self._phi_cache) + len(todo) > self.embedding_cache_size:
                 self._phi_cache.clear()
             for j, f in zip(todo_rows, fresh):
                 self._phi_cache[keys[j]] = f
         return out
+
+    def _count_visits(self, keys: list[bytes], env_indices: np.ndarray) -> np.ndarray:
+        """Count this visit of each observation in its env's episode; returns n >= 1 (this visit included)."""
+        visits = np.empty(len(keys), dtype=np.int64)
+        for j, (e, key) in enumerate(zip(env_indices, keys)):
+            counts = self._visit_counts[e]
+            if key not in counts and len(counts) >= self.episode_memory:
+                counts.clear()
+            visits[j] = counts[key] = counts.get(key, 0) + 1
+        return visits
 
     # ------------------------------------------------------------------ the step
     def step(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -487,32 +562,82 @@ class GoalCuriosityModule:
         :return: raw r_gc (eq 13, times the revisit factor of ``revisit_decay``) and normalised r_gc (eq 14),
             float32 arrays of shape (n,)
         """
+        return self.collect(self.submit(observations, dones, env_indices, background=False))
+
+    def submit(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None, background: bool = True) -> "ScoringTicket":
+        """First half of :meth:`step`: everything but the predictor's scoring of the new states, which runs in a
+        worker thread (``background=True``) while the caller goes on (e.g. steps the envs again). Take the
+        rewards with :meth:`collect`, in the order of submission; :meth:`step` is ``collect(submit(...))``.
+        The values are the same either way: the states scored together are the same, and every update of the
+        module's state (memo, normaliser, statistics) happens in the caller's thread in submission order.
+        """
         t0 = time.perf_counter()
         raw = self.adapter.extract(observations)
         n = len(raw)
         env_indices = np.arange(n) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
         self.ensure_envs(int(env_indices.max()) + 1)
         dones = np.asarray(dones, dtype=bool)
-        rewards, phi, keys = self._score(raw, env_indices)
+        keys = [self._key(x) for x in raw]
+        ticket = self._lookup(raw, env_indices, keys)
+        ticket.recording = self.recording
         if self.revisit_decay != "none":
-            rewards = rewards * revisit_factor(self._count_visits(keys, env_indices), self.revisit_decay)
+            ticket.factor = revisit_factor(self._count_visits(keys, env_indices), self.revisit_decay)
+        if self.recording:
+            self.memory.add(raw, self.rng)
+            self.trajectories.add(th.from_numpy(ticket.phi), self._episode_ids[env_indices], env_indices)
+            for j, e in enumerate(env_indices):
+                self._episodes[e].append(raw[j].copy())
+            self.n_recorded_steps += n
+        if len(ticket.miss):
+            if background:
+                if self._scorer is None:
+                    self._scorer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gocu-score")
+                ticket.future = self._scorer.submit(self._compute, ticket)
+        self._outstanding.append(ticket)
+        self.begin_episodes(env_indices[dones])
+        self.time_inference += time.perf_counter() - t0
+        return ticket
+
+    def collect(self, ticket: "ScoringTicket") -> tuple[np.ndarray, np.ndarray]:
+        """Second half of :meth:`step`: the raw and normalised rewards of a ticket from :meth:`submit`. Tickets
+        are taken in submission order (taking one takes the earlier ones first); taking one twice returns the
+        same arrays."""
+        if ticket.result is not None:
+            return ticket.result
+        while self._outstanding and self._outstanding[0] is not ticket:
+            self.collect(self._outstanding[0])
+        if not self._outstanding:
+            raise ValueError("this scoring ticket does not belong to this module")
+        t0 = time.perf_counter()
+        self._outstanding.popleft()
+        if not len(ticket.miss):
+            computed = np.zeros(0, dtype=np.float32)
+        elif ticket.future is not None:
+            computed = ticket.future.result()
+            self.time_inference_background += ticket.compute_time
+        else:
+            computed = self._compute(ticket)
+        self._commit(ticket, computed)
+        rewards = ticket.rewards
         if not np.all(np.isfinite(rewards)):
             # a broken network must not poison the policy's buffer: no bonus for these states
             self.stats["nonfinite_rewards"] = self.stats.get("nonfinite_rewards", 0) + int((~np.isfinite(rewards)).sum())
             rewards = np.where(np.isfinite(rewards), rewards, 0.0).astype(np.float32)
-        normalized = self.normalizer(rewards, env_indices, update=self.recording)
-        if self.recording:
-            self.memory.add(raw, self.rng)
-            self.trajectories.add(phi, self._episode_ids[env_indices], env_indices)
-            for j, e in enumerate(env_indices):
-                self._episodes[e].append(raw[j].copy())
-            self.n_recorded_steps += n
+        if ticket.factor is not None:
+            rewards = rewards * ticket.factor
+        normalized = self.normalizer(rewards, ticket.env_indices, update=ticket.recording)
+        if ticket.recording:
             self._reward_sum += float(rewards.sum())
             self._reward_sq_sum += float((rewards.astype(np.float64) ** 2).sum())
-            self._reward_count += n
-        self.begin_episodes(env_indices[dones])
+            self._reward_count += len(rewards)
+        ticket.result = (rewards, normalized)
         self.time_inference += time.perf_counter() - t0
-        return rewards, normalized
+        return ticket.result
+
+    def collect_all(self) -> None:
+        """Take every outstanding ticket (before the networks, the goals or the state change hands)."""
+        while self._outstanding:
+            self.collect(self._outstanding[0])
 
     # ------------------------------------------------------------------ learning
     def add_finished_episode_goals(self) -> int:
@@ -580,6 +705,7 @@ class GoalCuriosityModule:
         return {"snapshot": snapshot, "losses": losses, "skipped": skipped, "n": n, "time": time.perf_counter() - t0}
 
     def _finish_vae(self, fit: dict[str, Any]) -> dict[str, float]:
+        self.collect_all()
         t0 = time.perf_counter()
         self._guard_update("vae", self.vae, self.vae_optimizer, fit["snapshot"], fit["skipped"])
         self._sync_encoder()
@@ -698,6 +824,7 @@ class GoalCuriosityModule:
                 "mastered": float((weights * (p_skill > 0.5).float()).sum() / weights.sum()), "time": time.perf_counter() - t0}
 
     def _finish_predictor(self, fit: dict[str, Any]) -> dict[str, float]:
+        self.collect_all()  # scores in flight belong to the old predictor
         t0 = time.perf_counter()
         self._guard_update("predictor", self.predictor, self.predictor_optimizer, fit["snapshot"], fit["skipped"])
         self._folded = self.predictor.fold()
@@ -852,7 +979,8 @@ class GoalCuriosityModule:
     def state_dict(self) -> dict[str, Any]:
         """Everything the module learned and remembers, as tensors and plain Python values (loadable with
         ``torch.load(..., weights_only=True)``). A background update still running is waited for and taken
-        into use first."""
+        into use first, and so are scores still being computed (:meth:`submit`)."""
+        self.collect_all()
         self.finish_background_update()
         return {
             "vae": self.vae.state_dict(),
@@ -896,6 +1024,7 @@ class GoalCuriosityModule:
             bad = self.nonfinite_entries(state[net])
             if bad:
                 raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
+        self.collect_all()
         self.finish_background_update()
         self.vae.load_state_dict(state["vae"], strict=strict)
         self._phi_cache.clear()
@@ -928,7 +1057,7 @@ class GoalCuriosityModule:
             self._goal_valid = self._goal_valid[:0]
             self._goal_parts = self._goal_parts[:0]
             self._episode_ids = self._episode_ids[:0]
-            self._episodes, self._reward_cache, self._visit_counts = [], [], []
+            self._episodes, self._reward_cache, self._visit_counts, self._pending = [], [], [], []
             self.trajectories = TrajectoryStore(self.trajectories.total_capacity, self.trajectories.embed_dim, self.trajectories.min_per_env)
             self.normalizer.returns = self.normalizer.returns[:0]
             rng_state = self.rng.bit_generator.state

@@ -69,14 +69,19 @@ def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int) -> float:
     return (steps // n_envs) * n_envs / (time.perf_counter() - t0)
 
 
-def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dict[str, Any]) -> dict[str, float]:
+def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dict[str, Any], gocu_model: str | None = None,
+        async_scoring: bool = True) -> dict[str, float]:
     venv = make_vec_env(env_id, n_envs=16, seed=seed)
     timer = Timer()
     timer.wrap(innermost(venv), "step_wait", "env")
     if algo == "ppo":
         model = PPO("CnnPolicy", venv, seed=seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **PPO_SETTINGS)
+    elif gocu_model is not None:
+        # a trained agent: its policy moves (fewer repeated states, more scoring), its goal buffer is full
+        model = PPO_GoCu.load(gocu_model, env=venv, device="cpu")
+        model.async_scoring = async_scoring
     else:
-        model = PPO_GoCu("CnnPolicy", venv, seed=seed, curiosity_kwargs=curiosity_kwargs, **PPO_SETTINGS)
+        model = PPO_GoCu("CnnPolicy", venv, seed=seed, curiosity_kwargs=curiosity_kwargs, async_scoring=async_scoring, **PPO_SETTINGS)
     timer.wrap(model, "train", "ppo_update")
     if algo == "ppo_gocu":
         # wall time the rollouts wait for curiosity training (all of it when synchronous, only the joins when
@@ -91,6 +96,7 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
     if algo == "ppo_gocu":
         mod = model.curiosity
         out["curiosity_inference_s"] = mod.time_inference
+        out["scoring_in_worker_s"] = mod.time_inference_background
         out["vae_training_s"] = mod.time_vae
         out["predictor_training_s"] = mod.time_predictor
         out["cache_hit_rate"] = mod.cache_hits / max(1, mod.cache_lookups)
@@ -112,8 +118,11 @@ def main() -> None:
     parser.add_argument("--curiosity-kwargs", default="{}", help="JSON dict of GoalCuriosityModule keywords")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
     parser.add_argument(
-        "--also-background", action="store_true", help="also run PPO_GoCu with train_in_background=True (a third run)"
+        "--also-background", action="store_true", help="also run PPO_GoCu with train_in_background=True (another run)"
     )
+    parser.add_argument("--also-sync", action="store_true", help="also run PPO_GoCu with async_scoring=False (another run)")
+    parser.add_argument("--gocu-model", default=None, help="PPO_GoCu continues this trained model instead of starting afresh "
+                        "(its own curiosity settings; no pretraining); plain PPO still starts afresh")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     curiosity_kwargs = json.loads(args.curiosity_kwargs)
@@ -124,23 +133,31 @@ def main() -> None:
     results = {}
     order = ["ppo", "ppo_gocu"] if args.order == "ppo-first" else ["ppo_gocu", "ppo"]
     for algo in order:
-        results[algo] = run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs)
+        results[algo] = run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model)
     if args.also_background:
         results["ppo_gocu_background"] = run("ppo_gocu", args.env, args.timesteps, args.seed, {**curiosity_kwargs, "train_in_background": True})
+    if args.also_sync:
+        results["ppo_gocu_sync"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, async_scoring=False)
     ppo, gocu = results["ppo"], results["ppo_gocu"]
     print(f"\n{args.env}, {args.timesteps} steps, 16 envs")
     print(f"raw env (random actions)      {raw:8.0f} steps/s")
     print(f"plain PPO                     {ppo['steps_per_s']:8.0f} steps/s")
     print(f"PPO_GoCu                      {gocu['steps_per_s']:8.0f} steps/s")
     print(f"time per step, GoCu / PPO     {ppo['steps_per_s'] / gocu['steps_per_s']:8.2f}x")
-    if "ppo_gocu_background" in results:
-        bg = results["ppo_gocu_background"]
-        print(f"PPO_GoCu, background updates  {bg['steps_per_s']:8.0f} steps/s  ({ppo['steps_per_s'] / bg['steps_per_s']:.2f}x PPO's time per step)")
-    print("\nwhere the time goes (s)          PPO   PPO_GoCu" + ("  GoCu background" if "ppo_gocu_background" in results else ""))
-    for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "curiosity_updates_s",
-                "vae_training_s", "predictor_training_s", "pretrain_s", "total_s"):
-        extra = f"  {results['ppo_gocu_background'].get(key, 0.0):15.1f}" if "ppo_gocu_background" in results else ""
+    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_sync") if k in results]
+    labels = {"ppo_gocu_background": "background updates", "ppo_gocu_sync": "synchronous scoring"}
+    for k in extras:
+        r = results[k]
+        print(f"PPO_GoCu, {labels[k]:20s}{r['steps_per_s']:8.0f} steps/s  ({ppo['steps_per_s'] / r['steps_per_s']:.2f}x PPO's time per step)")
+    if args.gocu_model:
+        print(f"(PPO_GoCu continued {args.gocu_model})")
+    print("\nwhere the time goes (s)          PPO   PPO_GoCu" + "".join(f"  {labels[k]:>20s}" for k in extras))
+    for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "scoring_in_worker_s",
+                "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s", "total_s"):
+        extra = "".join(f"  {results[k].get(key, 0.0):20.1f}" for k in extras)
         print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}{extra}")
+    print("  (curiosity_inference_s: the rollout's own time in the module; scoring_in_worker_s: the predictor's scoring in the")
+    print("   worker thread, overlapping the next env step (async_scoring), not on the critical path unless waited for)")
     print("  (with background updates, VAE/predictor training overlaps the rollouts: its seconds are not on the critical path)")
     print("  (curiosity_updates_s: time the rollouts waited for VAE/predictor updates; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")

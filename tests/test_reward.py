@@ -110,7 +110,9 @@ def test_normalizer_eq14_by_hand():
 def test_module_reward_path_by_hand():
     """The module's whole step (goal halves, folding, cache) against the tiny predictor by hand."""
     space = spaces.Box(-10, 10, (1,), np.float32)
-    mod = GoalCuriosityModule(space, n_goals=2, goal_buffer_size=2, embed_dim=1, predictor_hidden=(1,), seed=0, goal_novelty=0.0)
+    # revisit_decay="none": eq 13 on every visit, so the memoised value is paid again
+    mod = GoalCuriosityModule(space, n_goals=2, goal_buffer_size=2, embed_dim=1, predictor_hidden=(1,), seed=0, goal_novelty=0.0,
+                              revisit_decay="none")
     mod.vae.embed = lambda x: x  # phi(s) = s, so the numbers stay hand-made
     mod._sync_encoder()  # inference embeds with a frozen copy of the VAE
     mod.predictor = tiny_predictor()

@@ -122,8 +122,9 @@ class GoalCuriosityModule:
     :param reward_scale: delta of eq 13 (> 0)
     :param revisit_decay: how much a state seen again within the same episode is paid: ``"none"`` (every visit
         pays eq 13, the paper), ``"inverse_sqrt"`` (the n-th visit pays r_gc / sqrt(n)) or ``"first_visit"``
-        (only the first visit pays; the default, measured on DoorKey-8x8, see the README). Visits are counted on the observation's bytes, per env, from the episode's
-        start (at most ``episode_memory`` distinct observations; the count restarts when that is exceeded).
+        (only the first visit pays; the default, measured on DoorKey-8x8, see the README). Visits are counted
+        on the observation's bytes, per env, from the episode's start (at most ``episode_memory`` distinct
+        observations; the count restarts when that is exceeded).
         See :func:`~sb3_gocu.curiosity.reward.revisit_factor`
     :param intrinsic_gamma: discount of the intrinsic returns, for the normalisation of eq 14 and (in
         PPO_GoCu) the GAE of the intrinsic stream

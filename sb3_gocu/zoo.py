@@ -42,6 +42,7 @@ import optuna  # noqa: E402
 
 import sb3_gocu  # noqa: E402, F401  (registers the GoCu/... env ids before the zoo checks --env)
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES  # noqa: E402
+from sb3_gocu.curiosity.reward import REVISIT_DECAYS  # noqa: E402
 from sb3_gocu.ppo_gocu import PPO_GoCu  # noqa: E402
 
 ALGO = "ppo_gocu"
@@ -61,6 +62,7 @@ GOCU_TRIAL_PARAMS = (
     "label_slope",  # b (eq 16)
     "new_goals_per_episode",  # l
     "goal_strategy",
+    "revisit_decay",  # what a revisit within an episode pays
 )
 #: policy_kwargs keys that no zoo sampler samples and that must survive tuning
 _EXTRACTOR_KEYS = ("features_extractor_class", "features_extractor_kwargs", "normalize_images", "share_features_extractor")
@@ -82,6 +84,7 @@ def sample_gocu_trial_params(trial: optuna.Trial) -> dict[str, Any]:
         "label_slope": trial.suggest_float("label_slope", 0.2, 2.0, log=True),
         "new_goals_per_episode": trial.suggest_int("new_goals_per_episode", 1, 15),
         "goal_strategy": trial.suggest_categorical("goal_strategy", list(GOAL_STRATEGIES)),
+        "revisit_decay": trial.suggest_categorical("revisit_decay", list(REVISIT_DECAYS)),
     }
 
 

@@ -62,7 +62,7 @@ def play(model: Any, env_id: str, policy: str, episodes: int, seed: int) -> dict
             if module is not None:
                 # the module sees observations as the model's env gave them (channel-first after VecTransposeImage)
                 x = obs if module.observation_space.shape == obs.shape else np.transpose(obs, (2, 0, 1))
-                rewards.append(float(module.curiosity(x[None], np.array([env_index]))[0]))
+                rewards.append(float(module.score_states(x[None], np.array([env_index]))[0]))
         cells.append(len(seen))
         phases.append(int(info.get("task_phase", -1)))
         returns.append(ret)

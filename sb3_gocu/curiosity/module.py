@@ -372,7 +372,7 @@ class GoalCuriosityModule:
         return self._folded.mastery_from_parts(self._folded.state_part(phi), parts.expand(len(phi), *parts.shape))
 
     @th.inference_mode()
-    def curiosity(self, observations: Any, env_indices: np.ndarray | None = None) -> np.ndarray:
+    def score_states(self, observations: Any, env_indices: np.ndarray | None = None) -> np.ndarray:
         """Raw r_gc (eq 13) of a batch of states against the current goals of their envs, computed afresh:
         nothing is recorded, memoised or counted (for probes and maps)."""
         raw = self.adapter.extract(observations)

@@ -54,9 +54,14 @@ def _check(condition: bool, message: str) -> None:
         raise ValueError(message)
 
 
+def _keys_to_tensor(table: dict[bytes, Any]) -> th.Tensor:
+    """The (equal-length) byte keys of a memo as one uint8 tensor, a row per key."""
+    return th.from_numpy(np.frombuffer(b"".join(table), dtype=np.uint8).reshape(len(table), -1 if table else 0).copy())
+
+
 def _cache_to_state(cache: dict[bytes, Any]) -> dict[str, th.Tensor]:
     """A memo {key bytes: phi} or {key bytes: (reward, phi)} as tensors (loadable with weights_only=True)."""
-    keys = th.from_numpy(np.frombuffer(b"".join(cache), dtype=np.uint8).reshape(len(cache), -1 if cache else 0).copy())
+    keys = _keys_to_tensor(cache)
     values = list(cache.values())
     if values and isinstance(values[0], tuple):
         return {"keys": keys, "rewards": th.tensor(np.array([r for r, _ in values], dtype=np.float32)),
@@ -74,8 +79,7 @@ def _cache_from_state(state: dict[str, th.Tensor]) -> dict[bytes, Any]:
 
 def _counts_to_state(counts: dict[bytes, int]) -> dict[str, th.Tensor]:
     """Visit counts {key bytes: n} as tensors."""
-    keys = np.frombuffer(b"".join(counts), dtype=np.uint8).reshape(len(counts), -1 if counts else 0)
-    return {"keys": th.from_numpy(keys.copy()), "counts": th.tensor(list(counts.values()), dtype=th.int64)}
+    return {"keys": _keys_to_tensor(counts), "counts": th.tensor(list(counts.values()), dtype=th.int64)}
 
 
 def _counts_from_state(state: dict[str, th.Tensor]) -> dict[bytes, int]:
@@ -379,14 +383,18 @@ class GoalCuriosityModule:
         env_indices = np.arange(len(raw)) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
         self.ensure_envs(int(env_indices.max()) + 1)
         envs = th.from_numpy(env_indices)
-        valid = self._goal_valid[envs]
-        r = th.full((len(raw),), self.alpha / self.reward_scale)
+        return self._eq13(self.embed(raw), self._goal_parts[envs], self._goal_valid[envs], self._folded).numpy()
+
+    @th.inference_mode()
+    def _eq13(self, phi: th.Tensor, goal_parts: th.Tensor, valid: th.Tensor, folded: FoldedPredictor) -> th.Tensor:
+        """Raw r_gc of states (phi) against their episodes' goals (goal halves, validity); a state whose
+        episode has no goal yet gets h = 0, i.e. alpha / delta."""
+        r = th.full((len(phi),), self.alpha / self.reward_scale)
         rows = valid[:, 0].nonzero()[:, 0]
         if len(rows):
-            phi = self.embed(raw[rows.numpy()])
-            mastery = self._folded.mastery_from_parts(self._folded.state_part(phi), self._goal_parts[envs[rows]])
+            mastery = folded.mastery_from_parts(folded.state_part(phi[rows]), goal_parts[rows])
             r[rows] = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale, valid=valid[rows])
-        return r.numpy()
+        return r
 
     def ensure_envs(self, n_envs: int) -> None:
         """Grow the per-env state to ``n_envs`` environments (new envs get goals at once)."""
@@ -494,14 +502,7 @@ class GoalCuriosityModule:
     def _compute(self, ticket: "ScoringTicket") -> np.ndarray:
         """Eq 13 for the ``miss`` rows of a ticket (pure: reads only what the ticket captured; any thread)."""
         t0 = time.perf_counter()
-        m_idx = ticket.miss
-        r = th.full((len(m_idx),), self.alpha / self.reward_scale)  # no goal yet: h = 0
-        with_goals = ticket.valid[:, 0]
-        if bool(with_goals.any()):
-            rows = with_goals.nonzero()[:, 0]
-            phi_m = th.from_numpy(ticket.phi[m_idx[rows.numpy()]])
-            mastery = ticket.folded.mastery_from_parts(ticket.folded.state_part(phi_m), ticket.goal_parts[rows])
-            r[rows] = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale, valid=ticket.valid[rows])
+        r = self._eq13(th.from_numpy(ticket.phi[ticket.miss]), ticket.goal_parts, ticket.valid, ticket.folded)
         ticket.compute_time = time.perf_counter() - t0
         return r.numpy()
 

@@ -250,7 +250,7 @@ def recorded_module(seed=0, steps=80, **kwargs):
 
 @pytest.mark.parametrize("name", ["vae", "predictor"])
 def test_an_update_that_makes_weights_nonfinite_is_rolled_back(name):
-    module = recorded_module()
+    module = recorded_module(vae_patience=0)  # early stopping would keep the starting weights by itself
     network, optimizer = getattr(module, name), getattr(module, f"{name}_optimizer")
     before = copy.deepcopy(network.state_dict())
     real_step = optimizer.step
@@ -268,6 +268,76 @@ def test_an_update_that_makes_weights_nonfinite_is_rolled_back(name):
     assert not module.nonfinite_entries(network.state_dict())
     raw, _ = module.step(np.random.default_rng(1).random((2, 2)).astype(np.float32), np.zeros(2, bool))
     assert np.isfinite(raw).all()
+
+
+def scripted_vae_update(losses, patience=1, epochs=6):
+    """A VAE update whose held-out losses are ``losses`` (before the update, then after each epoch); returns the
+    module, its statistics, the weights before the update and after each epoch."""
+    module = recorded_module(vae_patience=patience, vae_epochs=epochs)
+    script = iter(losses)
+    module._vae_val_loss = lambda data, weights: next(script)
+    states = [copy.deepcopy(module.vae.state_dict())]
+    job = module._prepare_vae(None)
+    fit = module._fit_vae(**job, on_epoch=lambda epoch: states.append(copy.deepcopy(module.vae.state_dict())))
+    return module, fit, states
+
+
+def test_vae_early_stopping_keeps_the_best_epoch():
+    # before 10, then 9, 8, 8.5 (no new best: patience 1 stops), 7 never measured
+    module, fit, states = scripted_vae_update([10.0, 9.0, 8.0, 8.5, 7.0], patience=1)
+    assert (fit["epochs_run"], fit["best_epoch"], fit["val_loss"], fit["val_loss_start"]) == (3, 2, 8.0, 10.0)
+    assert len(states) == 4
+    assert not differences(states[2], module.vae.state_dict()), "the weights of epoch 2"
+    assert differences(states[3], module.vae.state_dict()), "not those of the last epoch run"
+    # patience 2 goes on through one more epoch without a new best, and takes epoch 4's
+    module, fit, states = scripted_vae_update([10.0, 9.0, 8.0, 8.5, 7.0, 7.5, 7.6], patience=2)
+    assert (fit["epochs_run"], fit["best_epoch"]) == (6, 4)
+    assert not differences(states[4], module.vae.state_dict())
+
+
+def test_vae_update_without_a_better_epoch_changes_nothing():
+    module, fit, states = scripted_vae_update([5.0, 6.0, 7.0], patience=1)
+    assert (fit["epochs_run"], fit["best_epoch"]) == (1, 0)
+    assert not differences(states[0], module.vae.state_dict()), "back to the starting weights"
+    n_pairs = len(module.trajectories)
+    phi_goals = module.goal_buffer.embeddings.clone()
+    encoder = module._encoder
+    out = module._finish_vae(fit)
+    assert out["vae_best_epoch"] == 0 and out["vae_epochs_run"] == 1
+    assert module._encoder is encoder and len(module.trajectories) == n_pairs > 0, "embeddings still valid: kept"
+    assert th.equal(module.goal_buffer.embeddings, phi_goals)
+    # an update with a better epoch re-embeds and clears the predictor's trajectories
+    module, fit, _ = scripted_vae_update([5.0, 4.0, 4.5], patience=1)
+    assert len(module.trajectories) > 0
+    module._finish_vae(fit)
+    assert len(module.trajectories) == 0
+
+
+def test_vae_holdout_split_and_patience_zero():
+    module = recorded_module(vae_patience=1, vae_holdout=0.25)
+    distinct = {module._key(x) for x in module.memory.observations[: module.memory.size]}
+    job = module._prepare_vae(None)
+    train = {module._key(x) for x in job["data"]}
+    val = {module._key(x) for x in job["val_data"]}
+    assert not train & val and train | val == distinct
+    assert len(val) == round(0.25 * len(distinct))
+    assert np.isclose(job["weights"].sum() + job["val_weights"].sum(), len(distinct), rtol=1e-5)
+    module = recorded_module(vae_patience=0, vae_epochs=3)
+    job = module._prepare_vae(None)
+    assert "val_data" not in job and len(job["data"]) == len(distinct)
+    fit = module._fit_vae(**job)
+    assert fit["epochs_run"] == fit["best_epoch"] == 3
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(vae_patience=-1), r"vae_patience must be >= 0, got -1"),
+    (dict(vae_patience=1.5), r"vae_patience must be an integer"),
+    (dict(vae_holdout=0.0), r"vae_holdout must be in \(0, 0.5\], got 0.0"),
+    (dict(vae_holdout=0.6), r"vae_holdout must be in \(0, 0.5\], got 0.6"),
+])
+def test_vae_early_stopping_settings_are_checked(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        GoalCuriosityModule(BOX, **{**SMALL_CURIOSITY, **kwargs})
 
 
 def test_nonfinite_gradients_skip_the_step():

@@ -160,10 +160,19 @@ class GoalCuriosityModule:
     :param vae_beta: beta of eq 8
     :param vae_lr: Adam learning rate of the VAE
     :param vae_batch_size: minibatch size of VAE training
-    :param vae_epochs: epochs over the memory bank at each VAE update
+    :param vae_epochs: epochs over the memory bank at each VAE update (the most, with ``vae_patience``)
     :param vae_train_freq: P_vae, env steps between VAE updates
     :param vae_dedupe: train the VAE on the distinct observations of the memory bank, each weighted by its
         multiplicity (same objective as the whole bank, fewer passes when observations repeat)
+    :param vae_patience: early stopping of a VAE update: ``vae_holdout`` of the distinct observations are held
+        out, the loss of eq 8 on them is measured before the update and after each epoch, the update stops after
+        ``vae_patience`` epochs without a new best, and the VAE keeps the weights of its best epoch. When no epoch
+        beats the weights the update started from, the VAE is left as it was and nothing is re-embedded (the
+        trajectories of the predictor are kept). 0 (the default, the paper): always ``vae_epochs`` epochs on the
+        whole bank; early stopping is not yet validated on the sample-efficiency benchmark.
+        Measured with ``benchmarks/vae_epochs.py``: a cold VAE improves through 20 epochs, a warm one on
+        DoorKey-8x8 does not improve at all at 600k steps (its 20 epochs only move phi at random)
+    :param vae_holdout: fraction of the distinct observations held out for ``vae_patience`` (in (0, 0.5])
     :param pretrain_steps: random-policy observations collected to pretrain the VAE before the first rollout
     :param memory_size: capacity of the memory bank
     :param episode_memory: most recent states of the current episode kept per env to draw goals from
@@ -212,6 +221,8 @@ class GoalCuriosityModule:
         vae_epochs: int = 20,
         vae_train_freq: int = 100_000,
         vae_dedupe: bool = True,
+        vae_patience: int = 0,
+        vae_holdout: float = 0.1,
         pretrain_steps: int = 10_000,
         memory_size: int = 10_000,
         episode_memory: int = 4096,
@@ -227,7 +238,7 @@ class GoalCuriosityModule:
             ("predictor_pairs", predictor_pairs), ("predictor_train_freq", predictor_train_freq), ("embed_dim", embed_dim),
             ("latent_dim", latent_dim), ("vae_batch_size", vae_batch_size), ("vae_epochs", vae_epochs),
             ("vae_train_freq", vae_train_freq), ("pretrain_steps", pretrain_steps), ("memory_size", memory_size),
-            ("episode_memory", episode_memory),
+            ("episode_memory", episode_memory), ("vae_patience", vae_patience),
         ):
             _check(isinstance(value, (int, np.integer)) and not isinstance(value, bool), f"{name} must be an integer, got {value!r}")
         _check(goal_buffer_size >= 1, f"goal_buffer_size must be >= 1, got {goal_buffer_size}")
@@ -257,11 +268,17 @@ class GoalCuriosityModule:
             ("episode_memory", episode_memory),
         ):
             _check(value >= 1, f"{name} must be >= 1, got {value}")
-        for name, value in (("predictor_epochs", predictor_epochs), ("vae_epochs", vae_epochs), ("pretrain_steps", pretrain_steps)):
+        for name, value in (
+            ("predictor_epochs", predictor_epochs), ("vae_epochs", vae_epochs), ("pretrain_steps", pretrain_steps), ("vae_patience", vae_patience),
+        ):
             _check(value >= 0, f"{name} must be >= 0, got {value}")
         for name, value in (("predictor_lr", predictor_lr), ("vae_lr", vae_lr)):
             _check(value > 0, f"{name} must be > 0, got {value}")
         _check(vae_beta >= 0, f"vae_beta must be >= 0, got {vae_beta}")
+        _check(
+            isinstance(vae_holdout, (int, float, np.floating)) and not isinstance(vae_holdout, bool) and 0 < vae_holdout <= 0.5,
+            f"vae_holdout must be in (0, 0.5], got {vae_holdout!r}",
+        )
 
         self.observation_space = observation_space
         self.adapter = ObservationAdapter(observation_space, obs_key=obs_key, image_channels=image_channels)
@@ -290,6 +307,8 @@ class GoalCuriosityModule:
         self.vae_epochs = vae_epochs
         self.vae_train_freq = vae_train_freq
         self.vae_dedupe = vae_dedupe
+        self.vae_patience = vae_patience
+        self.vae_holdout = float(vae_holdout)
         self.pretrain_steps = pretrain_steps
         self.episode_memory = episode_memory
         self.device = th.device(device)
@@ -681,15 +700,52 @@ class GoalCuriosityModule:
             c = np.fromiter((counts[k] for k in first), dtype=np.float64, count=len(first))
             weights = (c * len(c) / c.sum()).astype(np.float32)
         self.last_vae_update = self.n_recorded_steps
-        return {"data": data, "weights": weights, "epochs": epochs}
+        job: dict[str, Any] = {"data": data, "weights": weights, "epochs": epochs}
+        n_val = int(round(self.vae_holdout * len(data)))
+        if self.vae_patience > 0 and n_val >= 1:
+            order = self.rng.permutation(len(data))
+            val, train = np.sort(order[:n_val]), np.sort(order[n_val:])
+            job.update(data=data[train], weights=weights[train], val_data=data[val], val_weights=weights[val])
+        return job
 
-    def _fit_vae(self, data: np.ndarray, weights: np.ndarray, epochs: int) -> dict[str, Any]:
+    @th.no_grad()
+    def _vae_val_loss(self, data: np.ndarray, weights: np.ndarray) -> float:
+        """Loss of eq 8 (weighted mean, eval mode: z = mu) on held-out observations."""
+        was_training = self.vae.training
+        self.vae.eval()
+        total = 0.0
+        for start in range(0, len(data), 1024):
+            x = self.adapter.to_tensor(data[start : start + 1024], self.device)
+            w = th.from_numpy(weights[start : start + 1024]).to(self.device)
+            total += float(vae_loss(self.vae, x, self.vae_beta, w)[0]) * len(x)
+        self.vae.train(was_training)
+        return total / len(data)
+
+    def _fit_vae(
+        self,
+        data: np.ndarray,
+        weights: np.ndarray,
+        epochs: int,
+        val_data: np.ndarray | None = None,
+        val_weights: np.ndarray | None = None,
+        on_epoch: Callable[[int], None] | None = None,
+    ) -> dict[str, Any]:
+        """Fit the VAE (eq 8) to ``data`` (weighted by multiplicity) for at most ``epochs`` epochs.
+
+        :param val_data: held-out observations for early stopping (``vae_patience``); None: all ``epochs`` epochs
+        :param val_weights: their multiplicities
+        :param on_epoch: called with the epoch number after each epoch (the VAE is in train mode), for probes
+        """
         t0 = time.perf_counter()
         snapshot = self._snapshot(self.vae, self.vae_optimizer)
+        early = val_data is not None and val_weights is not None and self.vae_patience > 0
+        best_loss = self._vae_val_loss(val_data, val_weights) if early else float("nan")
+        start_loss, best_epoch, best_state, since_best = best_loss, 0, None, 0
         self.vae.train()
         losses, skipped = [], 0
         n = len(data)
-        for _ in range(epochs):
+        epoch = -1
+        for epoch in range(epochs):
             order = th.randperm(n, generator=self._torch_gen).numpy()
             for start in range(0, n, self.vae_batch_size):
                 idx = order[start : start + self.vae_batch_size]
@@ -706,18 +762,35 @@ class GoalCuriosityModule:
                     continue
                 self.vae_optimizer.step()
                 losses.append(loss.item())
+            if on_epoch is not None:
+                on_epoch(epoch)
+            if early:
+                val_loss = self._vae_val_loss(val_data, val_weights)
+                if val_loss < best_loss:  # NaN never is
+                    best_loss, best_epoch, since_best = val_loss, epoch + 1, 0
+                    best_state = copy.deepcopy(self.vae.state_dict())
+                else:
+                    since_best += 1
+                    if since_best >= self.vae_patience:
+                        break
+        epochs_run = epoch + 1
+        if early and best_epoch < epochs_run:  # keep the best epoch's weights (the starting ones if none beat them)
+            self.vae.load_state_dict(best_state if best_state is not None else snapshot[0])
         self.vae.eval()
-        return {"snapshot": snapshot, "losses": losses, "skipped": skipped, "n": n, "time": time.perf_counter() - t0}
+        return {"snapshot": snapshot, "losses": losses, "skipped": skipped, "n": n + (0 if val_data is None else len(val_data)),
+                "time": time.perf_counter() - t0, "epochs_run": epochs_run, "best_epoch": best_epoch if early else epochs_run,
+                "val_loss_start": start_loss, "val_loss": best_loss}
 
     def _finish_vae(self, fit: dict[str, Any]) -> dict[str, float]:
         self.collect_all()
         t0 = time.perf_counter()
         self._guard_update("vae", self.vae, self.vae_optimizer, fit["snapshot"], fit["skipped"])
-        self._sync_encoder()
-        self._phi_cache.clear()
-        self.goal_buffer.refresh(self.embed)
-        self.trajectories.clear()  # stored embeddings belong to the old encoder
-        self._refresh_active_goals()
+        if fit["best_epoch"] > 0:  # otherwise the VAE kept its weights: every embedding is still valid
+            self._sync_encoder()
+            self._phi_cache.clear()
+            self.goal_buffer.refresh(self.embed)
+            self.trajectories.clear()  # stored embeddings belong to the old encoder
+            self._refresh_active_goals()
         dt = fit["time"] + time.perf_counter() - t0
         self.time_training += dt
         self.time_vae += dt
@@ -725,6 +798,9 @@ class GoalCuriosityModule:
             "vae_loss": float(np.mean(fit["losses"])) if fit["losses"] else float("nan"),
             "vae_distinct_observations": float(fit["n"]),
             "vae_skipped_updates": float(fit["skipped"]),
+            "vae_epochs_run": float(fit["epochs_run"]),
+            "vae_best_epoch": float(fit["best_epoch"]),
+            "vae_val_loss": fit["val_loss"],
             "vae_time": dt,
         }
         self.stats.update(out)

@@ -59,6 +59,7 @@ SMALL_CURIOSITY = dict(
     embed_dim=8,
     latent_dim=2,
     vae_epochs=1,
+    vae_patience=0,  # every VAE update trains (tests compare the weights before and after one)
     vae_train_freq=512,
     pretrain_steps=64,
     memory_size=256,
@@ -74,6 +75,7 @@ TINY_IMAGE_CURIOSITY = dict(
     predictor_epochs=1,
     predictor_train_freq=512,
     vae_epochs=1,
+    vae_patience=0,
     pretrain_steps=256,
     memory_size=512,
 )

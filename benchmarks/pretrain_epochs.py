@@ -10,13 +10,14 @@ pretraining update's epochs run, best epoch, held-out loss and time (``module.st
 
 import argparse
 import json
-import platform
 
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu/ ids)
 from sb3_gocu import PPO_GoCu
+
+from sample_efficiency import N_ENVS, machine_line  # noqa: E402  (same directory)
 
 
 def main() -> None:
@@ -27,9 +28,9 @@ def main() -> None:
     p.add_argument("--curiosity-kwargs", default="{}", help="JSON dict of GoalCuriosityModule keywords")
     args = p.parse_args()
     th.set_num_threads(args.threads)
-    print(f"machine: {platform.machine()}, Python {platform.python_version()}, torch {th.__version__}, threads {args.threads}")
+    print(f"machine: {machine_line(args.threads)}")
     for seed in args.seeds:
-        env = make_vec_env(args.env, n_envs=16, seed=seed)
+        env = make_vec_env(args.env, n_envs=N_ENVS, seed=seed)
         model = PPO_GoCu("CnnPolicy", env, n_steps=128, batch_size=256, seed=seed,
                          curiosity_kwargs=json.loads(args.curiosity_kwargs))
         model.learn(2048)

@@ -522,7 +522,7 @@ def write_summary(args: argparse.Namespace, command: str) -> str:
             *(f"- runs written by: `{c}`" for c in cmds if c != command),
             f"- seeds: {', '.join(map(str, seeds))}",
             *(f"- machine (runs): {m}" for m in machines),
-            *([f"- machine (this summary): {machine_line(args.threads)}"] if machine_line(args.threads) not in machines else []),
+            *([f"- machine (this summary): {here}"] if (here := machine_line(args.threads)) not in machines else []),
             f"- threads: {args.threads} (torch.set_num_threads) in this command; each run's own is the --threads of the "
             "command that wrote it (default 2). One command executes its runs one after another; separate commands "
             "may have run side by side.",

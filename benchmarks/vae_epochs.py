@@ -38,6 +38,7 @@ import torch as th
 import sb3_gocu  # noqa: F401
 from sb3_gocu import PPO_GoCu
 from sb3_gocu.curiosity import GoalCuriosityModule
+from sb3_gocu.curiosity.module import EarlyStopping
 from sb3_gocu.curiosity.networks import vae_loss
 
 from predictor_epochs import collect  # noqa: E402  (same directory)
@@ -106,16 +107,13 @@ def probe(mod: GoalCuriosityModule, epochs: int, val_frac: float, seed: int, ref
         r["nn_agree"] = float((r["nn"] == ref["nn"]).float().mean())
     start["nn_agree"] = float((start["nn"] == ref["nn"]).float().mean())
     stops = {}
-    for patience in (1, 2, 3):
-        best, best_epoch, since = start["val_loss"], 0, 0
+    for patience in (1, 2, 3):  # the module's own rule, replayed on this probe's held-out losses
+        stopping = EarlyStopping(start["val_loss"], patience)
         for r in rows:
-            if r["val_loss"] < best:
-                best, best_epoch, since = r["val_loss"], r["epoch"], 0
-            else:
-                since += 1
-                if since >= patience:
-                    break
-        stops[patience] = (r["epoch"], best_epoch)
+            stopping.update(r["epoch"], r["val_loss"])
+            if stopping.stop:
+                break
+        stops[patience] = (r["epoch"], stopping.best_epoch)
     return {"stops": stops, "start": start, "rows": rows, "distinct": len(data), "train": len(train), "val": n_val, "bank": mod.memory.size}
 
 

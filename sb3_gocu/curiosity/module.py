@@ -87,6 +87,30 @@ def _counts_from_state(state: dict[str, th.Tensor]) -> dict[bytes, int]:
     return {bytes(k): int(n) for k, n in zip(state["keys"].numpy(), state["counts"].tolist())}
 
 
+class EarlyStopping:
+    """The rule of ``vae_patience``: track the best held-out loss, starting from the loss before training (epoch
+    0), and stop after ``patience`` epochs in a row without a new best. NaN never is a new best.
+
+    :param start_loss: held-out loss before the first epoch
+    :param patience: epochs without a new best that end training (>= 1)
+    """
+
+    def __init__(self, start_loss: float, patience: int) -> None:
+        self.best_loss, self.best_epoch, self.patience, self._since_best = start_loss, 0, patience, 0
+
+    def update(self, epoch: int, loss: float) -> bool:
+        """Record the held-out ``loss`` after ``epoch`` (1-based); True when it is a new best."""
+        if loss < self.best_loss:
+            self.best_loss, self.best_epoch, self._since_best = loss, epoch, 0
+            return True
+        self._since_best += 1
+        return False
+
+    @property
+    def stop(self) -> bool:
+        return self._since_best >= self.patience
+
+
 class ScoringTicket:
     """One batch of states handed to :meth:`GoalCuriosityModule.submit`, until its rewards are collected."""
 
@@ -740,8 +764,8 @@ class GoalCuriosityModule:
         t0 = time.perf_counter()
         snapshot = self._snapshot(self.vae, self.vae_optimizer)
         early = val_data is not None and val_weights is not None and self.vae_patience > 0
-        best_loss = self._vae_val_loss(val_data, val_weights) if early else float("nan")
-        start_loss, best_epoch, best_state, since_best = best_loss, 0, None, 0
+        start_loss = self._vae_val_loss(val_data, val_weights) if early else float("nan")
+        stopping, best_state = EarlyStopping(start_loss, self.vae_patience), None
         self.vae.train()
         losses, skipped = [], 0
         n = len(data)
@@ -766,21 +790,18 @@ class GoalCuriosityModule:
             if on_epoch is not None:
                 on_epoch(epoch)
             if early:
-                val_loss = self._vae_val_loss(val_data, val_weights)
-                if val_loss < best_loss:  # NaN never is
-                    best_loss, best_epoch, since_best = val_loss, epoch + 1, 0
+                if stopping.update(epoch + 1, self._vae_val_loss(val_data, val_weights)):
                     best_state = copy.deepcopy(self.vae.state_dict())
-                else:
-                    since_best += 1
-                    if since_best >= self.vae_patience:
-                        break
+                elif stopping.stop:
+                    break
         epochs_run = epoch + 1
-        if early and best_epoch < epochs_run:  # keep the best epoch's weights (the starting ones if none beat them)
+        if early and stopping.best_epoch < epochs_run:  # keep the best epoch's weights (the starting ones if none beat them)
             self.vae.load_state_dict(best_state if best_state is not None else snapshot[0])
         self.vae.eval()
         return {"snapshot": snapshot, "losses": losses, "skipped": skipped, "n": n + (0 if val_data is None else len(val_data)),
-                "time": time.perf_counter() - t0, "epochs_run": epochs_run, "best_epoch": best_epoch if early else epochs_run,
-                "val_loss_start": start_loss, "val_loss": best_loss}
+                "time": time.perf_counter() - t0, "epochs_run": epochs_run,
+                "best_epoch": stopping.best_epoch if early else epochs_run, "val_loss_start": start_loss,
+                "val_loss": stopping.best_loss}
 
     def _finish_vae(self, fit: dict[str, Any]) -> dict[str, float]:
         self.collect_all()

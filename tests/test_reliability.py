@@ -648,8 +648,9 @@ def test_scoring_in_a_worker_thread_gives_the_same_rewards_and_state_bit_for_bit
     sync = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0, revisit_decay="inverse_sqrt")
     deferred = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0, revisit_decay="inverse_sqrt")
     rng = np.random.default_rng(0)
-    frames = rng.integers(0, 256, (10, 16, 16, 3), dtype=np.uint8)
-    steps = [(frames[rng.integers(10, size=3)], rng.random(3) < 0.1) for _ in range(60)]
+    frames = rng.integers(0, 256, (20, 16, 16, 3), dtype=np.uint8)
+    # frames 10-19 are new after the first goals: their phi is embedded in the worker, where a later ticket reads it
+    steps = [(frames[rng.integers(10 if t < 20 else 20, size=3)], rng.random(3) < 0.1) for t in range(60)]
     for m in (sync, deferred):
         m.recording = True
     for t, (batch, dones) in enumerate(steps[:20]):  # first goals
@@ -666,6 +667,8 @@ def test_scoring_in_a_worker_thread_gives_the_same_rewards_and_state_bit_for_bit
     got += [deferred.collect(t) for t in tickets[len(got):]]
     assert any(len(t.pending) for t in tickets), "no state was seen again while its score was in flight"
     assert any(t.future is not None for t in tickets), "nothing was scored in the worker"
+    assert any(len(t.phi_from) for t in tickets), "no phi was taken from a ticket still embedding it"
+    assert all(isinstance(v, th.Tensor) for v in deferred._phi_cache.values())  # all embeddings landed in the memo
     for (r1, n1), (r2, n2) in zip(expected, got):
         assert np.array_equal(r1, r2) and np.array_equal(n1, n2)
     assert deferred.collect(tickets[0]) is got[0]  # taking a ticket twice gives the same arrays
@@ -681,6 +684,28 @@ def test_state_dict_takes_the_scores_in_flight_first():
     module.state_dict()
     assert all(t.result is not None for t in tickets) and not module._outstanding
     assert module.pop_reward_stats()["reward_mean"] == pytest.approx(float(np.mean([t.result[0] for t in tickets])))
+
+
+@pytest.mark.parametrize("async_scoring", [True, False])
+def test_switch_interval_holds_during_an_async_rollout_only(async_scoring):
+    """The GIL switch interval is PPO_GoCu's while the worker thread scores, and the interpreter's again after."""
+    import sys
+
+    before = sys.getswitchinterval()
+    during = []
+
+    class Probe(BaseCallback):
+        def _on_step(self):
+            during.append(sys.getswitchinterval())
+            return True
+
+    model = small_model(async_scoring=async_scoring, switch_interval=2e-4)
+    model.learn(64, callback=Probe())
+    assert during and all(v == pytest.approx(2e-4 if async_scoring else before, rel=1e-6) for v in during)
+    assert sys.getswitchinterval() == before
+    for bad in (0, -1e-3, 2.0, "fast"):
+        with pytest.raises(ValueError, match="switch_interval"):
+            small_model(switch_interval=bad)
 
 
 @pytest.mark.parametrize("episodic", [False, True])

@@ -15,7 +15,8 @@ The reward of a state s in an episode with goals g_1..g_K (eq 13, 14)::
 Hot path. Between two predictor/VAE updates, the reward of a state against an episode's goals is a fixed
 function, so it is computed with the folded predictor (batch norm folded, first layer split, goal half
 cached per episode) and memoised per episode on the observation's bytes: an observation seen again in
-the same episode costs a hash. None of this changes the value computed.
+the same episode costs a hash. The embedding and scoring of new states can run in a worker thread
+(:meth:`submit` / :meth:`collect`) while the caller steps the envs. None of this changes the value computed.
 """
 
 from __future__ import annotations
@@ -118,6 +119,11 @@ class ScoringTicket:
         self.rewards = np.zeros(n, dtype=np.float32)  # raw r_gc (eq 13), filled at collection
         self.phi = np.zeros((n, embed_dim), dtype=np.float32)
         self.miss = np.zeros(0, dtype=np.int64)  # rows scored by the predictor
+        self.embed_rows = np.zeros(0, dtype=np.int64)  # rows of ``miss`` whose phi is not memoised: embedded with the scoring
+        self.phi_from: list[tuple[int, ScoringTicket, int]] = []  # (row, earlier ticket, its row): phi being embedded there
+        self.computed: np.ndarray | None = None  # eq 13 of the miss rows, when computed in the caller's thread
+        self.raw: np.ndarray | None = None  # their raw observations (a copy: the env reuses its buffers)
+        self.encoder: Any = None  # the encoder of the submission (a VAE update swaps the module's)
         self.pending: list[tuple[int, ScoringTicket, int]] = []  # (row, earlier ticket, its row): same state, same episode
         self.env_indices = np.zeros(0, dtype=np.int64)
         self.keys: list[bytes] = []
@@ -521,9 +527,8 @@ class GoalCuriosityModule:
                 ticket.rewards[j], ticket.phi[j] = hit
                 continue
             earlier = self._pending[e].get(key)
-            if earlier is not None:  # seen earlier in this episode, its score not taken yet
+            if earlier is not None:  # seen earlier in this episode, its score (and maybe phi) not taken yet
                 ticket.pending.append((j, earlier[0], earlier[1]))
-                ticket.phi[j] = earlier[0].phi[earlier[1]]
                 continue
             miss.append(j)
         self._cache_lookups += n
@@ -533,7 +538,24 @@ class GoalCuriosityModule:
         if miss:
             m_idx = np.asarray(miss)
             ticket.miss = m_idx
-            ticket.phi[m_idx] = self._embed_cached(raw, m_idx, keys).numpy()
+            # phi: memoised until the next VAE update; an entry is (ticket, row) while that ticket embeds it
+            todo = []
+            for j in miss:
+                hit = self._phi_cache.get(keys[j])
+                if hit is None:
+                    todo.append(j)
+                elif isinstance(hit, tuple):
+                    ticket.phi_from.append((j, *hit))
+                else:
+                    ticket.phi[j] = hit
+            if todo:
+                ticket.embed_rows = np.asarray(todo, dtype=np.int64)
+                ticket.raw = raw[ticket.embed_rows]
+                ticket.encoder = self._encoder
+                if len(self._phi_cache) + len(todo) > self.embedding_cache_size:
+                    self._phi_cache.clear()
+                for j in todo:
+                    self._phi_cache[keys[j]] = (ticket, j)
             envs = th.from_numpy(env_indices[m_idx])
             ticket.valid = self._goal_valid[envs].clone()
             ticket.goal_parts = self._goal_parts[envs].clone()  # the episode's goals: a new episode may start before scoring
@@ -544,8 +566,14 @@ class GoalCuriosityModule:
 
     @th.inference_mode()
     def _compute(self, ticket: "ScoringTicket") -> np.ndarray:
-        """Eq 13 for the ``miss`` rows of a ticket (pure: reads only what the ticket captured; any thread)."""
+        """phi of the ticket's ``embed_rows`` and eq 13 for its ``miss`` rows (pure: reads only what the ticket
+        captured, writes only the ticket's own phi rows; any thread)."""
         t0 = time.perf_counter()
+        for j, earlier, row in ticket.phi_from:  # computed before this one (one worker, in order; or the caller)
+            ticket.phi[j] = earlier.phi[row]
+        if len(ticket.embed_rows):
+            phi = ticket.encoder.embed(self.adapter.to_tensor(ticket.raw, self.device)).cpu()
+            ticket.phi[ticket.embed_rows] = phi.numpy()
         r = self._eq13(th.from_numpy(ticket.phi[ticket.miss]), ticket.goal_parts, ticket.valid, ticket.folded)
         ticket.compute_time = time.perf_counter() - t0
         return r.numpy()
@@ -558,6 +586,12 @@ class GoalCuriosityModule:
             ticket.rewards[ticket.miss] = computed
         for j, earlier, row in ticket.pending:
             ticket.rewards[j] = earlier.rewards[row]
+            ticket.phi[j] = earlier.phi[row]
+        for j in ticket.embed_rows:
+            entry = self._phi_cache.get(keys[j])
+            if isinstance(entry, tuple) and entry[0] is ticket and entry[1] == j:
+                self._phi_cache[keys[j]] = th.from_numpy(ticket.phi[j].copy())
+        ticket.raw = ticket.encoder = None
         for j, rj in zip(ticket.miss, ticket.rewards[ticket.miss]):
             e = env_indices[j]
             if self._pending[e].get(keys[j], (None,))[0] is ticket:
@@ -568,27 +602,6 @@ class GoalCuriosityModule:
             if len(cache) >= self.episode_memory:
                 cache.clear()
             cache[keys[j]] = (rj, ticket.phi[j])
-
-    def _embed_cached(self, raw: np.ndarray, rows: np.ndarray, keys: list[bytes]) -> th.Tensor:
-        """phi of ``raw[rows]``, memoised on the observation's bytes until the next VAE update."""
-        out = th.empty(len(rows), self.goal_buffer.embeddings.shape[1])
-        todo = []
-        for i, j in enumerate(rows):
-            hit = self._phi_cache.get(keys[j])
-            if hit is None:
-                todo.append(i)
-            else:
-                out[i] = hit
-        if todo:
-            todo_rows = rows[np.asarray(todo)]
-            with th.inference_mode():
-                fresh = self._encoder.embed(self.adapter.to_tensor(raw[todo_rows], self.device)).cpu()
-            out[th.as_tensor(todo)] = fresh
-            if len(self._phi_cache) + len(todo) > self.embedding_cache_size:
-                self._phi_cache.clear()
-            for j, f in zip(todo_rows, fresh):
-                self._phi_cache[keys[j]] = f
-        return out
 
     def _count_visits(self, keys: list[bytes], env_indices: np.ndarray) -> np.ndarray:
         """Count this visit of each observation in its env's episode; returns n >= 1 (this visit included)."""
@@ -614,8 +627,8 @@ class GoalCuriosityModule:
         return self.collect(self.submit(observations, dones, env_indices, background=False))
 
     def submit(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None, background: bool = True) -> "ScoringTicket":
-        """First half of :meth:`step`: everything but the predictor's scoring of the new states, which runs in a
-        worker thread (``background=True``) while the caller goes on (e.g. steps the envs again). Take the
+        """First half of :meth:`step`: everything but the VAE's embedding and the predictor's scoring of the states
+        new to their episode (and to the embedding memo), which run in a worker thread (``background=True``) while the caller goes on (e.g. steps the envs again). Take the
         rewards with :meth:`collect`, in the order of submission; :meth:`step` is ``collect(submit(...))``.
         The values are the same either way: the states scored together are the same, and every update of the
         module's state (memo, normaliser, statistics) happens in the caller's thread in submission order.
@@ -633,7 +646,6 @@ class GoalCuriosityModule:
             ticket.factor = revisit_factor(self._count_visits(keys, env_indices), self.revisit_decay)
         if self.recording:
             self.memory.add(raw, self.rng)
-            self.trajectories.add(th.from_numpy(ticket.phi), self._episode_ids[env_indices], env_indices)
             for j, e in enumerate(env_indices):
                 self._episodes[e].append(raw[j].copy())
             self.n_recorded_steps += n
@@ -642,6 +654,11 @@ class GoalCuriosityModule:
                 if self._scorer is None:
                     self._scorer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gocu-score")
                 ticket.future = self._scorer.submit(self._compute, ticket)
+            else:  # now, so that a later ticket may read this one's phi
+                for _, earlier, _ in ticket.phi_from:
+                    if earlier.future is not None:
+                        earlier.future.result()
+                ticket.computed = self._compute(ticket)
         self._outstanding.append(ticket)
         self.begin_episodes(env_indices[dones])
         self.time_inference += time.perf_counter() - t0
@@ -665,8 +682,10 @@ class GoalCuriosityModule:
             computed = ticket.future.result()
             self.time_inference_background += ticket.compute_time
         else:
-            computed = self._compute(ticket)
+            computed = ticket.computed
         self._commit(ticket, computed)
+        if ticket.recording:  # phi of every row is known now
+            self.trajectories.add(th.from_numpy(ticket.phi), ticket.episode_ids, ticket.env_indices)
         rewards = ticket.rewards
         if not np.all(np.isfinite(rewards)):
             # a broken network must not poison the policy's buffer: no bonus for these states
@@ -848,6 +867,7 @@ class GoalCuriosityModule:
 
     # predictor update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
     def _prepare_predictor(self) -> dict[str, Any] | None:
+        self.collect_all()  # the trajectory store takes a state's phi when its ticket is collected
         phi_s, phi_g, dist = self.trajectories.sample_pairs(
             self.predictor_pairs, self.max_distance, self.rng, first_visit=self.first_visit_distance
         )

@@ -121,6 +121,10 @@ def main() -> None:
         "--also-background", action="store_true", help="also run PPO_GoCu with train_in_background=True (another run)"
     )
     parser.add_argument("--also-sync", action="store_true", help="also run PPO_GoCu with async_scoring=False (another run)")
+    parser.add_argument(
+        "--also-foreground", action="store_true",
+        help="also run PPO_GoCu with train_in_background=False (another run; the default before it was True)",
+    )
     parser.add_argument("--gocu-model", default=None, help="PPO_GoCu continues this trained model instead of starting afresh "
                         "(its own curiosity settings; no pretraining); plain PPO still starts afresh")
     args = parser.parse_args()
@@ -136,6 +140,8 @@ def main() -> None:
         results[algo] = run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model)
     if args.also_background:
         results["ppo_gocu_background"] = run("ppo_gocu", args.env, args.timesteps, args.seed, {**curiosity_kwargs, "train_in_background": True})
+    if args.also_foreground:
+        results["ppo_gocu_foreground"] = run("ppo_gocu", args.env, args.timesteps, args.seed, {**curiosity_kwargs, "train_in_background": False})
     if args.also_sync:
         results["ppo_gocu_sync"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, async_scoring=False)
     ppo, gocu = results["ppo"], results["ppo_gocu"]
@@ -144,8 +150,9 @@ def main() -> None:
     print(f"plain PPO                     {ppo['steps_per_s']:8.0f} steps/s")
     print(f"PPO_GoCu                      {gocu['steps_per_s']:8.0f} steps/s")
     print(f"time per step, GoCu / PPO     {ppo['steps_per_s'] / gocu['steps_per_s']:8.2f}x")
-    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_sync") if k in results]
-    labels = {"ppo_gocu_background": "background updates", "ppo_gocu_sync": "synchronous scoring"}
+    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_foreground", "ppo_gocu_sync") if k in results]
+    labels = {"ppo_gocu_background": "background updates", "ppo_gocu_foreground": "updates in the rollout",
+              "ppo_gocu_sync": "synchronous scoring"}
     for k in extras:
         r = results[k]
         print(f"PPO_GoCu, {labels[k]:20s}{r['steps_per_s']:8.0f} steps/s  ({ppo['steps_per_s'] / r['steps_per_s']:.2f}x PPO's time per step)")

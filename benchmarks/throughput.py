@@ -123,7 +123,7 @@ def main() -> None:
     parser.add_argument("--also-sync", action="store_true", help="also run PPO_GoCu with async_scoring=False (another run)")
     parser.add_argument(
         "--also-foreground", action="store_true",
-        help="also run PPO_GoCu with train_in_background=False (another run; the default before it was True)",
+        help="also run PPO_GoCu with train_in_background=False (another run; the default)",
     )
     parser.add_argument("--gocu-model", default=None, help="PPO_GoCu continues this trained model instead of starting afresh "
                         "(its own curiosity settings; no pretraining); plain PPO still starts afresh")

@@ -70,7 +70,10 @@ def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int) -> float:
 
 
 def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dict[str, Any], gocu_model: str | None = None,
-        async_scoring: bool = True) -> dict[str, float]:
+        async_scoring: bool = True, overrides: dict[str, Any] | None = None) -> dict[str, float]:
+    """One arm: ``algo`` for ``timesteps`` steps; ``overrides``: curiosity settings that replace those of
+    ``curiosity_kwargs`` (a fresh agent) or of the loaded model (``gocu_model``)."""
+    overrides = overrides or {}
     venv = make_vec_env(env_id, n_envs=16, seed=seed)
     timer = Timer()
     timer.wrap(innermost(venv), "step_wait", "env")
@@ -80,7 +83,10 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         # a trained agent: its policy moves (fewer repeated states, more scoring), its goal buffer is full
         model = PPO_GoCu.load(gocu_model, env=venv, device="cpu")
         model.async_scoring = async_scoring
+        for name, value in overrides.items():
+            setattr(model.curiosity, name, value)
     else:
+        curiosity_kwargs = {**curiosity_kwargs, **overrides}
         model = PPO_GoCu("CnnPolicy", venv, seed=seed, curiosity_kwargs=curiosity_kwargs, async_scoring=async_scoring, **PPO_SETTINGS)
     timer.wrap(model, "train", "ppo_update")
     if algo == "ppo_gocu":
@@ -100,6 +106,8 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         out["vae_training_s"] = mod.time_vae
         out["predictor_training_s"] = mod.time_predictor
         out["cache_hit_rate"] = mod.cache_hits / max(1, mod.cache_lookups)
+        # with overlap_ppo_update the rollouts wait for an update at their first step, not in maybe_train
+        out["curiosity_updates_s"] = out.get("curiosity_updates_s", 0.0) + mod.time_update_wait
         # the random-policy pretraining steps go through the env and the curiosity module too
         out["pretrain_s"] = out["total_s"] - out["rollout_s"] - out["ppo_update_s"]
     out["policy_and_bookkeeping_s"] = (
@@ -125,8 +133,13 @@ def main() -> None:
         "--also-foreground", action="store_true",
         help="also run PPO_GoCu with train_in_background=False (another run; the default)",
     )
+    parser.add_argument(
+        "--also-in-place", action="store_true",
+        help="also run PPO_GoCu with the updates in place (train_in_background=False, overlap_ppo_update=False; another run)",
+    )
     parser.add_argument("--gocu-model", default=None, help="PPO_GoCu continues this trained model instead of starting afresh "
-                        "(its own curiosity settings; no pretraining); plain PPO still starts afresh")
+                        "(its own curiosity settings, but for those the --also-* arms set; "
+                        "no pretraining); plain PPO still starts afresh")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     curiosity_kwargs = json.loads(args.curiosity_kwargs)
@@ -139,9 +152,18 @@ def main() -> None:
     for algo in order:
         results[algo] = run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model)
     if args.also_background:
-        results["ppo_gocu_background"] = run("ppo_gocu", args.env, args.timesteps, args.seed, {**curiosity_kwargs, "train_in_background": True})
+        results["ppo_gocu_background"] = run(
+            "ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, overrides={"train_in_background": True}
+        )
     if args.also_foreground:
-        results["ppo_gocu_foreground"] = run("ppo_gocu", args.env, args.timesteps, args.seed, {**curiosity_kwargs, "train_in_background": False})
+        results["ppo_gocu_foreground"] = run(
+            "ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, overrides={"train_in_background": False}
+        )
+    if args.also_in_place:
+        results["ppo_gocu_in_place"] = run(
+            "ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
+            overrides={"train_in_background": False, "overlap_ppo_update": False},
+        )
     if args.also_sync:
         results["ppo_gocu_sync"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, async_scoring=False)
     ppo, gocu = results["ppo"], results["ppo_gocu"]
@@ -150,8 +172,9 @@ def main() -> None:
     print(f"plain PPO                     {ppo['steps_per_s']:8.0f} steps/s")
     print(f"PPO_GoCu                      {gocu['steps_per_s']:8.0f} steps/s")
     print(f"time per step, GoCu / PPO     {ppo['steps_per_s'] / gocu['steps_per_s']:8.2f}x")
-    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_foreground", "ppo_gocu_sync") if k in results]
-    labels = {"ppo_gocu_background": "background updates", "ppo_gocu_foreground": "updates in the rollout",
+    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_foreground", "ppo_gocu_in_place", "ppo_gocu_sync") if k in results]
+    labels = {"ppo_gocu_background": "background updates", "ppo_gocu_foreground": "updates at rollout ends",
+              "ppo_gocu_in_place": "updates in place",
               "ppo_gocu_sync": "synchronous scoring"}
     for k in extras:
         r = results[k]
@@ -165,7 +188,8 @@ def main() -> None:
         print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}{extra}")
     print("  (curiosity_inference_s: the rollout's own time in the module; scoring_in_worker_s: the predictor's scoring in the")
     print("   worker thread, overlapping the next env step (async_scoring), not on the critical path unless waited for)")
-    print("  (with background updates, VAE/predictor training overlaps the rollouts: its seconds are not on the critical path)")
+    print("  (with background updates, VAE/predictor training overlaps the rollouts; by default (overlap_ppo_update) it overlaps")
+    print("   PPO's update and the next rollout waits for the rest: only the waits are on the critical path)")
     print("  (curiosity_updates_s: time the rollouts waited for VAE/predictor updates; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")
     print(f"  (pretrain_s is the whole random-policy pretraining phase; "

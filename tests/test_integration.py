@@ -142,3 +142,35 @@ def test_background_updates_train_the_same_networks_one_rollout_later():
     assert not th.equal(old_fold, background._folded.w_out), "the new predictor is in use after the finish"
     obs = np.array([[0.3, 0.09], [0.6, 0.36]], dtype=np.float32)
     assert np.array_equal(sync.step(obs, np.zeros(2, bool))[0], background.step(obs, np.zeros(2, bool))[0])
+
+
+def test_an_update_overlapping_ppos_is_taken_into_use_before_the_next_step():
+    """overlap_ppo_update: maybe_train starts the update in a thread; the next use of the module waits for it,
+    so the networks and the rewards are those of the in-place update; its statistics come out of the next
+    maybe_train."""
+    space = ChainEnv().observation_space
+    settings = {**SMALL_CURIOSITY, "vae_train_freq": 256}
+    in_place = GoalCuriosityModule(space, **settings, seed=5)
+    overlap = GoalCuriosityModule(space, **{**settings, "overlap_ppo_update": True}, seed=5)
+    assert GoalCuriosityModule(space).overlap_ppo_update, "on by default"
+    rng = np.random.default_rng(0)
+    batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(160)]
+    for module in (in_place, overlap):
+        module.recording = True
+        for obs, dones in batches:
+            module.step(obs, dones)
+    out_in_place = in_place.maybe_train()
+    assert "predictor_loss" in out_in_place and "vae_loss" in out_in_place
+    old_fold = overlap._folded.w_out.clone()
+    out_started = overlap.maybe_train()
+    assert "predictor_loss" not in out_started and overlap._job is not None, "the update runs in a thread"
+    obs = np.array([[0.3, 0.09], [0.6, 0.36]], dtype=np.float32)
+    r_in_place, r_overlap = in_place.step(obs, np.zeros(2, bool))[0], overlap.step(obs, np.zeros(2, bool))[0]
+    assert overlap._job is None and not th.equal(old_fold, overlap._folded.w_out), "in use at the next step"
+    assert np.array_equal(r_in_place, r_overlap)
+    for name in ("vae", "predictor"):
+        a, b = getattr(in_place, name).state_dict(), getattr(overlap, name).state_dict()
+        assert all(th.equal(a[k], b[k]) for k in a), name
+    out_next = overlap.maybe_train()
+    assert out_next["predictor_loss"] == out_in_place["predictor_loss"] and out_next["vae_loss"] == out_in_place["vae_loss"]
+    assert "predictor_loss" not in overlap.maybe_train(), "reported once"

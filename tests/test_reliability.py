@@ -533,6 +533,29 @@ def test_two_runs_with_one_seed_give_identical_updates_and_rewards():
     assert differences(parameters(a), parameters(c)), "another seed gives another run"
 
 
+def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit():
+    """overlap_ppo_update (the default) runs the curiosity updates while PPO updates the policy: the same
+    policy, module and rewards as running them in place, bit for bit."""
+    runs, overlapped = [], []
+    for overlap in (True, False):
+        model = small_model(curiosity=dict(predictor_train_freq=128, vae_train_freq=256, overlap_ppo_update=overlap))
+        train = model.train
+
+        def spy(train=train, model=model):
+            overlapped.append(model.curiosity._job is not None)
+            train()
+
+        model.train = spy
+        model.learn(512)  # 8 rollouts: 4 predictor updates, 2 VAE updates
+        runs.append(model)
+    a, b = runs
+    assert overlapped[:8].count(True) == 4 and not any(overlapped[8:]), "updates ran beside PPO's with overlap only"
+    assert a.curiosity.stats["predictor_pairs"] > 0 and a.curiosity.time_vae > 0
+    assert not differences(parameters(a), parameters(b))
+    assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())
+    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
+
+
 def test_module_initial_weights_depend_on_its_seed_alone():
     th.manual_seed(1)
     a = GoalCuriosityModule(BOX, **SMALL_CURIOSITY, seed=7)

@@ -27,6 +27,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
 from sb3_gocu import PaperCNN, PPO_GoCu
+from sb3_gocu.callbacks import GoCuCallback
 
 PPO_SETTINGS: dict[str, Any] = dict(
     n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2
@@ -50,6 +51,11 @@ class Timer:
                 self.totals[label] = self.totals.get(label, 0.0) + time.perf_counter() - t0
 
         setattr(obj, name, timed)
+
+
+#: the random-policy pretraining phase (env steps, VAE pretraining, first goals), over all runs
+pretrain_timer = Timer()
+pretrain_timer.wrap(GoCuCallback, "_pretrain", "pretrain")
 
 
 def innermost(venv: Any) -> Any:
@@ -94,6 +100,7 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         # the updates run in the background)
         timer.wrap(model.curiosity, "maybe_train", "curiosity_updates")
     timer.wrap(model, "collect_rollouts", "rollout")
+    pretrain_before = pretrain_timer.totals.get("pretrain", 0.0)
     t0 = time.perf_counter()
     model.learn(timesteps)
     total = time.perf_counter() - t0
@@ -106,10 +113,10 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         out["vae_training_s"] = mod.time_vae
         out["predictor_training_s"] = mod.time_predictor
         out["cache_hit_rate"] = mod.cache_hits / max(1, mod.cache_lookups)
-        # with overlap_ppo_update the rollouts wait for an update at their first step, not in maybe_train
+        # with overlap_ppo_update an update is waited for at the next rollout's first step (or at the end of
+        # learn), not in maybe_train
         out["curiosity_updates_s"] = out.get("curiosity_updates_s", 0.0) + mod.time_update_wait
-        # the random-policy pretraining steps go through the env and the curiosity module too
-        out["pretrain_s"] = out["total_s"] - out["rollout_s"] - out["ppo_update_s"]
+        out["pretrain_s"] = pretrain_timer.totals.get("pretrain", 0.0) - pretrain_before
     out["policy_and_bookkeeping_s"] = (
         out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0) - out.get("curiosity_updates_s", 0.0)
     )
@@ -190,9 +197,9 @@ def main() -> None:
     print("   worker thread, overlapping the next env step (async_scoring), not on the critical path unless waited for)")
     print("  (with background updates, VAE/predictor training overlaps the rollouts; by default (overlap_ppo_update) it overlaps")
     print("   PPO's update and the next rollout waits for the rest: only the waits are on the critical path)")
-    print("  (curiosity_updates_s: time the rollouts waited for VAE/predictor updates; vae/predictor_training_s: the "
+    print("  (curiosity_updates_s: time the rollouts (and the end of learn) waited for VAE/predictor updates; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")
-    print(f"  (pretrain_s is the whole random-policy pretraining phase; "
+    print(f"  (pretrain_s is the whole random-policy pretraining phase (measured, not a remainder); "
           f"reward cache hit rate {gocu['cache_hit_rate']:.2f})")
     if args.json:
         with open(args.json, "w") as f:

@@ -70,7 +70,8 @@ class PPO_GoCu(PPO):
         later (at the rollout end for the last step), so a callback reading them in ``on_step`` sees the previous
         step's. Used when the training env has one :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``)
     :param switch_interval: the interpreter's GIL switch interval in seconds (``sys.setswitchinterval``) while a
-        rollout scores in the worker thread, restored when the rollout ends; ``None`` leaves it alone. At
+        rollout scores in the worker thread, and while PPO's update runs beside a curiosity update
+        (``overlap_ppo_update``), restored afterwards; ``None`` leaves it alone. At
         Python's 5 ms, the rollout thread often waits for the GIL to come back from the worker after a numpy or
         torch call; at 0.5 ms it gets it back sooner (measured on DoorKey-8x8, README "Throughput"). Does not
         change any value computed
@@ -224,6 +225,21 @@ class PPO_GoCu(PPO):
         if restore_env:
             model.set_env(read_env_state(path, model.curiosity), force_reset=False)
         return model
+
+    # ------------------------------------------------------------------ update
+    def train(self) -> None:
+        """PPO's update. While a curiosity update runs beside it in the module's thread (``overlap_ppo_update``),
+        at ``switch_interval``: that thread needs the GIL back after every tensor operation, and PPO's minibatch
+        loop holds it for Python's 5 ms by default."""
+        switch_interval = getattr(self, "switch_interval", None)
+        if switch_interval is None or self.curiosity is None or not self.curiosity.update_running:
+            return super().train()
+        previous = sys.getswitchinterval()
+        sys.setswitchinterval(switch_interval)
+        try:
+            super().train()
+        finally:
+            sys.setswitchinterval(previous)
 
     # ------------------------------------------------------------------ rollout
     def collect_rollouts(

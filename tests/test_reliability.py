@@ -731,6 +731,23 @@ def test_switch_interval_holds_during_an_async_rollout_only(async_scoring):
             small_model(switch_interval=bad)
 
 
+def test_switch_interval_holds_during_a_ppo_update_beside_a_curiosity_update(monkeypatch):
+    """With overlap_ppo_update, PPO's update runs at PPO_GoCu's switch interval while the curiosity update runs
+    beside it, and at the interpreter's otherwise."""
+    import sys
+
+    from stable_baselines3 import PPO
+
+    before, seen = sys.getswitchinterval(), []
+    model = small_model(curiosity=dict(predictor_train_freq=256, overlap_ppo_update=True), switch_interval=2e-4)
+    original = PPO.train
+    monkeypatch.setattr(PPO, "train", lambda self: (seen.append((self.curiosity.update_running, sys.getswitchinterval())), original(self))[1])
+    model.learn(512)
+    assert {running for running, _ in seen} == {True, False}
+    assert all(v == pytest.approx(2e-4 if running else before, rel=1e-6) for running, v in seen)
+    assert sys.getswitchinterval() == before
+
+
 @pytest.mark.parametrize("episodic", [False, True])
 def test_ppo_gocu_scoring_in_a_worker_thread_matches_the_synchronous_run(episodic):
     """async_scoring (r_gc scored while the envs take the next step) against the synchronous rollout: the same

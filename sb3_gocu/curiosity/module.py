@@ -421,7 +421,7 @@ class GoalCuriosityModule:
         self.time_training = 0.0
         self.time_vae = 0.0
         self.time_predictor = 0.0
-        self.time_update_wait = 0.0  # waiting, before a use, for an update overlapping PPO's (overlap_ppo_update)
+        self.time_update_wait = 0.0  # waiting for an update that overlapped PPO's (overlap_ppo_update) to finish
         self._folded = self.predictor.fold()
         self._sync_encoder()
 
@@ -1044,13 +1044,16 @@ class GoalCuriosityModule:
         except BaseException as error:  # re-raised in the caller's thread by finish_background_update
             self._job_result["error"] = error
 
+    @property
+    def update_running(self) -> bool:
+        """Whether an update started by :meth:`maybe_train` runs in the background (not yet taken into use)."""
+        return self._job is not None
+
     def _await_overlapped_update(self) -> None:
         """Before the module is used again, take into use an update started by :meth:`maybe_train` with
         ``overlap_ppo_update`` (waiting for it if it still runs)."""
         if self._job is not None and self._job_until_next_use:
-            t0 = time.perf_counter()
             self._unreported.update(self.finish_background_update())
-            self.time_update_wait += time.perf_counter() - t0
 
     def finish_background_update(self) -> dict[str, float]:
         """Wait for a background update, if one runs, and take its networks into use.
@@ -1059,7 +1062,10 @@ class GoalCuriosityModule:
         """
         if self._job is None:
             return {}
+        t0 = time.perf_counter()
         self._job.join()
+        if self._job_until_next_use:
+            self.time_update_wait += time.perf_counter() - t0
         self._job = None
         self._job_until_next_use = False
         result, self._job_result = self._job_result, {}

@@ -221,7 +221,9 @@ class GoalCuriosityModule:
         background thread, so that it overlaps with PPO's update of the policy (which leaves a core idle), and
         take it into use before the module is next used (the next rollout's first step): the same networks,
         taken into use at the same step as when run in place, only sooner in wall time. Its statistics come
-        out of the next :meth:`maybe_train` (logged one rollout later). False: run the update in place
+        out of the next :meth:`maybe_train` (logged one rollout later). Measured on DoorKey-8x8 (README,
+        Results): the rollouts waited 23.9 s for the updates per 100k steps, against 34.9 s in place (same run,
+        1 torch thread). False: run the update in place
     :param device: torch device of the networks
     :param seed: seed of the module's random generators
     """

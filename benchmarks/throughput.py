@@ -137,10 +137,6 @@ def main() -> None:
     )
     parser.add_argument("--also-sync", action="store_true", help="also run PPO_GoCu with async_scoring=False (another run)")
     parser.add_argument(
-        "--also-foreground", action="store_true",
-        help="also run PPO_GoCu with train_in_background=False (another run; the default)",
-    )
-    parser.add_argument(
         "--also-in-place", action="store_true",
         help="also run PPO_GoCu with the updates in place (train_in_background=False, overlap_ppo_update=False; another run)",
     )
@@ -162,10 +158,6 @@ def main() -> None:
         results["ppo_gocu_background"] = run(
             "ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, overrides={"train_in_background": True}
         )
-    if args.also_foreground:
-        results["ppo_gocu_foreground"] = run(
-            "ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, overrides={"train_in_background": False}
-        )
     if args.also_in_place:
         results["ppo_gocu_in_place"] = run(
             "ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
@@ -179,9 +171,8 @@ def main() -> None:
     print(f"plain PPO                     {ppo['steps_per_s']:8.0f} steps/s")
     print(f"PPO_GoCu                      {gocu['steps_per_s']:8.0f} steps/s")
     print(f"time per step, GoCu / PPO     {ppo['steps_per_s'] / gocu['steps_per_s']:8.2f}x")
-    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_foreground", "ppo_gocu_in_place", "ppo_gocu_sync") if k in results]
-    labels = {"ppo_gocu_background": "background updates", "ppo_gocu_foreground": "updates at rollout ends",
-              "ppo_gocu_in_place": "updates in place",
+    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_in_place", "ppo_gocu_sync") if k in results]
+    labels = {"ppo_gocu_background": "background updates", "ppo_gocu_in_place": "updates in place",
               "ppo_gocu_sync": "synchronous scoring"}
     for k in extras:
         r = results[k]

@@ -116,18 +116,24 @@ def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():
         PPO_GoCu("MlpPolicy", GoCuVecEnvWrapper(chain_venv(), mode="sum", curiosity_kwargs=SMALL_CURIOSITY))
 
 
-def test_background_updates_train_the_same_networks_one_rollout_later():
+def in_place_and_variant_after_steps(**variant: bool) -> tuple[GoalCuriosityModule, GoalCuriosityModule]:
+    """Two modules with one seed, updates in place and with ``variant`` settings, after the same 160 recorded
+    steps of 2 envs (a predictor and a VAE update due)."""
     space = ChainEnv().observation_space
     settings = {**SMALL_CURIOSITY, "vae_train_freq": 256}
-    sync = GoalCuriosityModule(space, **settings, seed=5)
-    background = GoalCuriosityModule(space, **{**settings, "train_in_background": True}, seed=5)
-    assert not GoalCuriosityModule(space).train_in_background, "off by default"
+    modules = GoalCuriosityModule(space, **settings, seed=5), GoalCuriosityModule(space, **{**settings, **variant}, seed=5)
     rng = np.random.default_rng(0)
     batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(160)]
-    for module in (sync, background):
+    for module in modules:
         module.recording = True
         for obs, dones in batches:
             module.step(obs, dones)
+    return modules
+
+
+def test_background_updates_train_the_same_networks_one_rollout_later():
+    sync, background = in_place_and_variant_after_steps(train_in_background=True)
+    assert not GoalCuriosityModule(ChainEnv().observation_space).train_in_background, "off by default"
     out_sync = sync.maybe_train()
     assert "predictor_loss" in out_sync and "vae_loss" in out_sync
     out_started = background.maybe_train()
@@ -148,25 +154,16 @@ def test_an_update_overlapping_ppos_is_taken_into_use_before_the_next_step():
     """overlap_ppo_update: maybe_train starts the update in a thread; the next use of the module waits for it,
     so the networks and the rewards are those of the in-place update; its statistics come out of the next
     maybe_train."""
-    space = ChainEnv().observation_space
-    settings = {**SMALL_CURIOSITY, "vae_train_freq": 256}
-    in_place = GoalCuriosityModule(space, **settings, seed=5)
-    overlap = GoalCuriosityModule(space, **{**settings, "overlap_ppo_update": True}, seed=5)
-    assert GoalCuriosityModule(space).overlap_ppo_update, "on by default"
-    rng = np.random.default_rng(0)
-    batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(160)]
-    for module in (in_place, overlap):
-        module.recording = True
-        for obs, dones in batches:
-            module.step(obs, dones)
+    in_place, overlap = in_place_and_variant_after_steps(overlap_ppo_update=True)
+    assert GoalCuriosityModule(ChainEnv().observation_space).overlap_ppo_update, "on by default"
     out_in_place = in_place.maybe_train()
     assert "predictor_loss" in out_in_place and "vae_loss" in out_in_place
     old_fold = overlap._folded.w_out.clone()
     out_started = overlap.maybe_train()
-    assert "predictor_loss" not in out_started and overlap._job is not None, "the update runs in a thread"
+    assert "predictor_loss" not in out_started and overlap.update_running, "the update runs in a thread"
     obs = np.array([[0.3, 0.09], [0.6, 0.36]], dtype=np.float32)
     r_in_place, r_overlap = in_place.step(obs, np.zeros(2, bool))[0], overlap.step(obs, np.zeros(2, bool))[0]
-    assert overlap._job is None and not th.equal(old_fold, overlap._folded.w_out), "in use at the next step"
+    assert not overlap.update_running and not th.equal(old_fold, overlap._folded.w_out), "in use at the next step"
     assert np.array_equal(r_in_place, r_overlap)
     for name in ("vae", "predictor"):
         a, b = getattr(in_place, name).state_dict(), getattr(overlap, name).state_dict()

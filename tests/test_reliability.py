@@ -542,7 +542,7 @@ def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit():
         train = model.train
 
         def spy(train=train, model=model):
-            overlapped.append(model.curiosity._job is not None)
+            overlapped.append(model.curiosity.update_running)
             train()
 
         model.train = spy

@@ -177,3 +177,29 @@ def test_predictor_epochs_probe_replays_the_update_per_budget(two_runs):
     # the same budget replayed twice gives the same predictor (same draws, same generator)
     again = probe.main([str(model), "--pairs", "64", "256", "--epochs", "3", "--val-pairs", "128", "--threads", "1"])
     assert again["curves"][64][-1]["val_loss"] == curves[64][-1]["val_loss"]
+
+
+def test_view_aliasing_renders_every_standable_cell_of_each_phase():
+    """DoorKey-5x5, layout 0: the key phase covers the left room (the key's cell too: it is carried), the door
+    phase adds the door's cell and the right room; 4 directions each. A right-room view counts as aliased
+    exactly when it is one of the left room's views."""
+    import gymnasium as gym
+
+    va = load_script("view_aliasing", "benchmarks/view_aliasing.py")
+    env = gym.make("GoCu/DoorKey-5x5-v0")
+    env.reset(seed=0)
+    base = env.unwrapped
+    objects = va.curiosity_map.find_objects(base)
+    door_x = objects[3][0]
+    inner_h = base.height - 2
+    left = va.phase_views(env, "key", objects)
+    both = va.phase_views(env, "door_open", objects)
+    assert len(left) == 4 * (door_x - 1) * inner_h
+    assert len(both) == 4 * ((base.width - 3) * inner_h + 1)
+    assert {k for k in both if k[0] < door_x} == set(left)
+    right = [v for k, v in both.items() if k[0] > door_x]
+    expected = sum(v in set(left.values()) for v in right) / len(right)
+    r = va.aliasing("GoCu/DoorKey-5x5-v0", 1)
+    assert r["same_layout_mean"] == pytest.approx(expected) and r["any_layout"] == pytest.approx(expected)
+    assert r["right_views_per_layout"] == len(right)
+    env.close()

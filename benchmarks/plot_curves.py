@@ -2,12 +2,14 @@
 
     python benchmarks/plot_curves.py benchmarks/out/doorkey8                      # -> benchmarks/out/doorkey8/curves.png
     python benchmarks/plot_curves.py benchmarks/out/doorkey8 --band std --metric success_rate --out sr.png
+    python benchmarks/plot_curves.py benchmarks/out/doorkey16 --per-seed      # runs of different lengths
 
 x = env steps, y = mean extrinsic return of the last 100 episodes (``--metric`` picks another CSV column). For
 each algo: the mean over seeds and a band (``--band minmax``: min to max over seeds, the default; ``std``:
 mean +- std). Seeds are put on a common step grid by linear interpolation; at a step that some seed has not
 reached yet (a run still going), only the seeds that reached it count, so the tail of a curve may rest on
-fewer seeds (the legend gives the number of seeds). Rows before a run's first finished episode are skipped.
+fewer seeds (the legend gives the number of seeds); with ``--per-seed`` each seed's own curve is drawn too and
+the mean and band stop where the shortest run stops. Rows before a run's first finished episode are skipped.
 """
 
 from __future__ import annotations
@@ -86,9 +88,21 @@ def env_name(directory: pathlib.Path) -> str | None:
     return None
 
 
+def mean_curve(seed_curves: Sequence[tuple[np.ndarray, np.ndarray]], band: str, all_seeds: bool = False) -> tuple[np.ndarray, ...]:
+    """x, mean, band low, band high over the seeds; ``all_seeds``: only where every seed has data (a run stopped
+    early, e.g. once solved, does not pull the mean towards the runs still going)."""
+    x, mean, lo, hi, count = aggregate(seed_curves, band)
+    if all_seeds:
+        full = count == len(seed_curves)
+        x, mean, lo, hi = x[full], mean[full], lo[full], hi[full]
+    return x, mean, lo, hi
+
+
 def plot(directory: str | pathlib.Path, out: str | pathlib.Path | None = None, metric: str = "mean_return", band: str = "minmax",
-         title: str | None = None, threshold: float | None = 0.9) -> pathlib.Path:
-    """Draw the curves of the runs in ``directory`` and save a PNG. :return: the PNG's path"""
+         title: str | None = None, threshold: float | None = 0.9, per_seed: bool = False) -> pathlib.Path:
+    """Draw the curves of the runs in ``directory`` and save a PNG; ``per_seed``: also each seed's own curve
+    (thin, labelled at its end), with the mean and band drawn only where every seed has data.
+    :return: the PNG's path"""
     directory = pathlib.Path(directory)
     runs = load_runs(directory, metric)
     if not runs:
@@ -98,19 +112,30 @@ def plot(directory: str | pathlib.Path, out: str | pathlib.Path | None = None, m
     order = [a for a in LABELS if a in runs] + sorted(a for a in runs if a not in LABELS)
     for algo in order:
         seeds = sorted(runs[algo])
-        x, mean, lo, hi, _ = aggregate([runs[algo][s] for s in seeds], band)
+        x, mean, lo, hi = mean_curve([runs[algo][s] for s in seeds], band, all_seeds=per_seed)
         color = COLORS.get(algo)
         label = f"{LABELS.get(algo, algo)} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})"
         (line,) = ax.plot(x, mean, color=color, lw=1.8, label=label)
         ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
+        if per_seed:
+            for seed in seeds:
+                sx, sy = runs[algo][seed]
+                ax.plot(sx, sy, color=line.get_color(), lw=0.7, alpha=0.7)
+                ax.annotate(f"seed {seed}", (sx[-1], sy[-1]), xytext=(3, 0), textcoords="offset points", fontsize=7,
+                            color=line.get_color(), va="center")
     if threshold is not None and metric == "mean_return":
         ax.axhline(threshold, color="grey", ls=":", lw=1)
     ax.set_xlabel("environment steps")
     ax.set_ylabel(YLABELS.get(metric, metric))
-    ax.set_title(title or f"{env_name(directory) or directory.name}: mean over seeds, band = {'min-max' if band == 'minmax' else '+- std'}")
+    what = f"mean over seeds, band = {'min-max' if band == 'minmax' else '+- std'}"
+    if per_seed:
+        what = f"thin: each seed; thick: {what}, where every seed ran"
+    ax.set_title(title or f"{env_name(directory) or directory.name}: {what}", fontsize=10 if per_seed else None)
     ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 0))
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper left")
+    ax.legend(loc="center right" if per_seed else "upper left")
+    if per_seed:
+        ax.margins(x=0.1)  # room for the seed labels
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out)
@@ -125,8 +150,9 @@ def main(argv: Sequence[str] | None = None) -> pathlib.Path:
     p.add_argument("--metric", default="mean_return", help="CSV column on the y axis (mean_return, success_rate, intrinsic_mean, ...)")
     p.add_argument("--band", choices=["minmax", "std"], default="minmax")
     p.add_argument("--title", default=None)
+    p.add_argument("--per-seed", action="store_true", help="also draw each seed's curve; mean and band only where every seed ran")
     args = p.parse_args(argv)
-    path = plot(args.directory, args.out, args.metric, args.band, args.title)
+    path = plot(args.directory, args.out, args.metric, args.band, args.title, per_seed=args.per_seed)
     print(f"wrote {path}")
     return path
 

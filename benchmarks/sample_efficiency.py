@@ -509,7 +509,7 @@ def write_summary(args: argparse.Namespace, command: str) -> str:
     seeds = sorted({int(m.group(1)) for p in out.glob("*_seed*.csv") if (m := re.search(r"_seed(\d+)\.csv$", p.name))})
     text = "\n".join(
         [
-            f"# Sample efficiency: {env or args.env}",
+            f"# Sample efficiency: {env or (args.env if args.env_given else 'env not recorded in --out (pass --env)')}",
             "",
             table,
             "",
@@ -537,7 +537,7 @@ def write_summary(args: argparse.Namespace, command: str) -> str:
 # ---------------------------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--env", default="GoCu/DoorKey-8x8-v0", help="any registered gymnasium id")
+    p.add_argument("--env", default=None, help="any registered gymnasium id (default GoCu/DoorKey-8x8-v0)")
     p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--timesteps", type=int, default=800_000)
@@ -568,6 +568,8 @@ def main(argv: Sequence[str] | None = None) -> str:
     """Run (or resume) every (algo, seed) run, then summarise. :return: the summary's markdown."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.env_given = args.env is not None
+    args.env = args.env or "GoCu/DoorKey-8x8-v0"
     if args.keep_checkpoints < 1:
         parser.error("--keep-checkpoints must be >= 1")
     argv_list = list(sys.argv[1:] if argv is None else argv)

@@ -3,7 +3,9 @@
 
 import csv
 import json
+import shutil
 
+import numpy as np
 import pytest
 import torch as th
 
@@ -79,7 +81,17 @@ def test_csvs_and_summary(se, two_runs):
     assert read(out / "ppo_seed0.csv") == before
     (out / "summary.md").unlink()
     se.main(["--out", str(out), "--summary-only", "--threads", "1"])
-    assert "| ppo_gocu |" in (out / "summary.md").read_text()
+    md = (out / "summary.md").read_text()
+    assert "| ppo_gocu |" in md and md.startswith("# Sample efficiency: GoCu/DoorKey-5x5-v0\n")  # from the checkpoints
+    # CSVs alone (a results folder): the env is not guessed
+    csvs = out.parent / (out.name + "_csvs")
+    csvs.mkdir()
+    for path in out.glob("*_seed*.csv"):
+        shutil.copy(path, csvs / path.name)
+    se.main(["--out", str(csvs), "--summary-only", "--threads", "1"])
+    assert (csvs / "summary.md").read_text().startswith("# Sample efficiency: env not recorded in --out (pass --env)\n")
+    se.main(["--env", "GoCu/DoorKey-5x5-v0", "--out", str(csvs), "--summary-only", "--threads", "1"])
+    assert (csvs / "summary.md").read_text().startswith("# Sample efficiency: GoCu/DoorKey-5x5-v0\n")
 
 
 def test_other_settings_refused(se, two_runs):
@@ -203,3 +215,17 @@ def test_view_aliasing_renders_every_standable_cell_of_each_phase():
     assert r["same_layout_mean"] == pytest.approx(expected) and r["any_layout"] == pytest.approx(expected)
     assert r["right_views_per_layout"] == len(right)
     env.close()
+
+
+def test_mean_curve_of_runs_of_different_lengths(plot_curves):
+    """Two seeds, one stopped at 3,000 steps: the plain mean rests on the longer run alone after 3,000 steps;
+    with all_seeds it stops at 3,000, and its values are the mean of both seeds."""
+    short = (np.array([1000.0, 2000.0, 3000.0]), np.array([0.0, 0.5, 1.0]))
+    long = (np.array([1000.0, 2000.0, 3000.0, 4000.0, 5000.0]), np.array([0.0, 0.1, 0.2, 0.3, 0.4]))
+    x, mean, lo, hi = plot_curves.mean_curve([short, long], "minmax")
+    assert x[-1] == 5000.0 and mean[-1] == pytest.approx(0.4)  # the tail: one seed
+    x, mean, lo, hi = plot_curves.mean_curve([short, long], "minmax", all_seeds=True)
+    np.testing.assert_allclose(x, [1000.0, 2000.0, 3000.0])
+    np.testing.assert_allclose(mean, [0.0, 0.3, 0.6])
+    np.testing.assert_allclose(lo, [0.0, 0.1, 0.2])
+    np.testing.assert_allclose(hi, [0.0, 0.5, 1.0])

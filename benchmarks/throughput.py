@@ -7,12 +7,15 @@ raw env steps/s with random actions (the ceiling), plain PPO steps/s, PPO_GoCu s
 K = 50, 5x512 predictor, P_m = 20k, P_vae = 100k, VAE pretraining on 10k random-policy observations, all
 included), their ratio, and PPO_GoCu's time split into env stepping, policy forward and rollout
 bookkeeping, PPO update, curiosity inference, VAE training (pretraining included) and predictor training.
-The order of the runs alternates (``--order``) so that neither always runs on a warmer machine.
+``--order`` picks which agent runs first. glibc's allocator makes the first training run of a process slower
+(it keeps returning memory and faulting it in again until its dynamic thresholds have grown), so by default
+(``--malloc fixed``) the thresholds are fixed at the start and the order no longer matters.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import os
 import platform
@@ -56,6 +59,26 @@ class Timer:
 #: the random-policy pretraining phase (env steps, VAE pretraining, first goals), over all runs
 pretrain_timer = Timer()
 pretrain_timer.wrap(GoCuCallback, "_pretrain", "pretrain")
+
+
+#: glibc mallopt parameters: heap memory above this is not returned to the system; blocks above this come from mmap
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+
+
+def fix_malloc_thresholds(trim: int = 1 << 30, mmap: int = 32 << 20) -> bool:
+    """Fix glibc's trim and mmap thresholds for the whole process (``--malloc fixed``).
+
+    By default glibc raises both thresholds as the process frees large blocks, so a process's first training
+    run keeps giving memory back and faulting it in again, and the runs after it do not: measured in one
+    process, plain PPO's update took 64.3 s when it ran first and 48.1 s when it ran after PPO_GoCu (40,960
+    steps, README "Throughput"). Fixed thresholds give every run the same allocator. :return: whether glibc
+    took both settings
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    return bool(libc.mallopt(M_TRIM_THRESHOLD, trim)) and bool(libc.mallopt(M_MMAP_THRESHOLD, mmap))
 
 
 def innermost(venv: Any) -> Any:
@@ -130,6 +153,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
     parser.add_argument("--order", choices=["ppo-first", "gocu-first"], default="ppo-first")
+    parser.add_argument("--malloc", choices=["fixed", "default"], default="fixed",
+                        help="fixed: glibc trim/mmap thresholds set once for the process, so no run pays for being first; "
+                        "default: glibc's own dynamic thresholds")
     parser.add_argument("--curiosity-kwargs", default="{}", help="JSON dict of GoalCuriosityModule keywords")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
     parser.add_argument(
@@ -146,9 +172,13 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     curiosity_kwargs = json.loads(args.curiosity_kwargs)
+    malloc = "glibc default (dynamic thresholds)"
+    if args.malloc == "fixed":
+        malloc = "glibc mallopt trim 1 GiB, mmap 32 MiB" if fix_malloc_thresholds() else "could not fix the glibc thresholds: default"
 
     print(f"command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}")
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {th.__version__}, threads {args.threads}, seed {args.seed}")
+    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {th.__version__}, threads {args.threads}, seed {args.seed}; "
+          f"order {args.order}; malloc: {malloc}")
     raw = raw_env_rate(args.env, 16, min(args.timesteps, 32_000), args.seed)
     results = {}
     order = ["ppo", "ppo_gocu"] if args.order == "ppo-first" else ["ppo_gocu", "ppo"]
@@ -194,7 +224,7 @@ def main() -> None:
           f"reward cache hit rate {gocu['cache_hit_rate']:.2f})")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"command": sys.argv, "raw_env_steps_per_s": raw, **results}, f, indent=2)
+            json.dump({"command": sys.argv, "order": args.order, "malloc": malloc, "raw_env_steps_per_s": raw, **results}, f, indent=2)
 
 
 if __name__ == "__main__":

@@ -34,23 +34,9 @@ import curiosity_map  # noqa: E402  (phases, flood fill and rendering of example
 
 
 def phase_views(env: gym.Env, phase: str, objects: tuple) -> dict[tuple[int, int, int], bytes]:
-    """The rendered observation (as bytes) at every cell reachable in ``phase``, facing each direction,
-    keyed by (x, y, direction); ``objects``: ``find_objects`` of the fresh layout. The env is left in ``phase``
-    with the agent back at its start."""
-    base = env.unwrapped
-    key, key_pos, door, _ = objects
-    start_pos, start_dir = tuple(int(v) for v in base.agent_pos), int(base.agent_dir)
-    curiosity_map.set_phase(base, phase, key, key_pos, door)
-    reach = curiosity_map.reachable_cells(base, start_pos)
-    views = {}
-    for y in range(base.height):
-        for x in range(base.width):
-            if reach[y, x]:
-                for d in range(curiosity_map.DIRECTIONS):
-                    base.agent_pos, base.agent_dir = (x, y), d
-                    views[(x, y, d)] = curiosity_map.render_observation(env).tobytes()
-    base.agent_pos, base.agent_dir = start_pos, start_dir
-    return views
+    """:func:`curiosity_map.phase_observations` as bytes, keyed by (x, y, direction)."""
+    _, cells, obs = curiosity_map.phase_observations(env, phase, objects)
+    return {(x, y, d): obs[i, d].tobytes() for i, (x, y) in enumerate(cells) for d in range(curiosity_map.DIRECTIONS)}
 
 
 def aliasing(env_id: str, layouts: int) -> dict[str, float]:

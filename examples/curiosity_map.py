@@ -167,6 +167,29 @@ def score(module: Any, raw_states: np.ndarray, goals: np.ndarray, batch: int = 2
     return np.concatenate(rewards), np.concatenate(max_m)
 
 
+def phase_observations(env: gym.Env, phase: str, objects: tuple[Key, tuple[int, int], Door, tuple[int, int]]) -> tuple[np.ndarray, list[tuple[int, int]], np.ndarray]:
+    """Put the grid in ``phase`` and render the observation at every cell the agent can reach from where it
+    stands, facing each direction; the agent is put back where it was (the grid stays in ``phase``).
+
+    :param objects: :func:`find_objects` of the layout, taken before any phase was set (the key leaves the grid)
+    :return: reachable mask (height, width), the reachable cells (row-major) and their observations
+        (n_cells, 4, H, W, C)
+    """
+    base = env.unwrapped
+    key, key_pos, door, _ = objects
+    start_pos, start_dir = tuple(int(v) for v in base.agent_pos), int(base.agent_dir)
+    set_phase(base, phase, key, key_pos, door)
+    reach = reachable_cells(base, start_pos)
+    cells = [(x, y) for y in range(base.height) for x in range(base.width) if reach[y, x]]
+    obs = np.empty((len(cells), DIRECTIONS, *env.observation_space.shape), dtype=env.observation_space.dtype)
+    for i, (x, y) in enumerate(cells):
+        for d in range(DIRECTIONS):
+            base.agent_pos, base.agent_dir = (x, y), d
+            obs[i, d] = render_observation(env)
+    base.agent_pos, base.agent_dir = start_pos, start_dir
+    return reach, cells, obs
+
+
 def compute_maps(model: PPO_GoCu, env_id: str = "GoCu/DoorKey-8x8-v0", seed: int = 0, n_goals: int | None = None) -> dict[str, Any]:
     """Intrinsic reward and max-mastery maps of the three phases.
 
@@ -182,20 +205,11 @@ def compute_maps(model: PPO_GoCu, env_id: str = "GoCu/DoorKey-8x8-v0", seed: int
     env = gym.make(env_id)
     env.reset(seed=seed)
     base = env.unwrapped
-    key, key_pos, door, _ = find_objects(base)
-    start_pos, start_dir = tuple(int(v) for v in base.agent_pos), int(base.agent_dir)
+    objects = find_objects(base)
     goals = sample_goals(module, n_goals, seed)
     phases: dict[str, Any] = {}
     for phase in PHASES:
-        set_phase(base, phase, key, key_pos, door)
-        reach = reachable_cells(base, start_pos)
-        cells = [(x, y) for y in range(base.height) for x in range(base.width) if reach[y, x]]
-        obs = np.empty((len(cells), DIRECTIONS, *env.observation_space.shape), dtype=env.observation_space.dtype)
-        for i, (x, y) in enumerate(cells):
-            for d in range(DIRECTIONS):
-                base.agent_pos, base.agent_dir = (x, y), d
-                obs[i, d] = render_observation(env)
-        base.agent_pos, base.agent_dir = start_pos, start_dir
+        reach, cells, obs = phase_observations(env, phase, objects)
         layout = base.get_frame(highlight=False, tile_size=16)
         flat = obs.reshape(-1, *obs.shape[2:])
         r, m = score(module, to_module_layout(flat, module.adapter.raw_shape), goals)
@@ -205,7 +219,7 @@ def compute_maps(model: PPO_GoCu, env_id: str = "GoCu/DoorKey-8x8-v0", seed: int
             reward[y, x] = r.reshape(len(cells), DIRECTIONS)[i].mean()
             mastery[y, x] = m.reshape(len(cells), DIRECTIONS)[i].mean()
         phases[phase] = {"reward": reward, "mastery": mastery, "masked": ~reach, "observations": obs, "cells": cells, "layout": layout}
-    set_phase(base, "no_key", key, key_pos, door)
+    set_phase(base, "no_key", *objects[:3])
     env.close()
     return {
         "phases": phases,

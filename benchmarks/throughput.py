@@ -59,6 +59,7 @@ class Timer:
 #: the random-policy pretraining phase (env steps, VAE pretraining, first goals), over all runs
 pretrain_timer = Timer()
 pretrain_timer.wrap(GoCuCallback, "_pretrain", "pretrain")
+pretrain_timer.wrap(GoCuCallback, "_on_training_end", "end_of_learn")  # waits for an update still running
 
 
 #: glibc mallopt parameters: heap memory above this is not returned to the system; blocks above this come from mmap
@@ -123,7 +124,19 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         # the updates run in the background)
         timer.wrap(model.curiosity, "maybe_train", "curiosity_updates")
     timer.wrap(model, "collect_rollouts", "rollout")
+    waits_in_rollouts = [0.0]  # the module's update waits as of the last rollout's end (the rest: learn's end)
+    if algo == "ppo_gocu":
+        collect = model.collect_rollouts
+
+        def collect_and_note(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return collect(*args, **kwargs)
+            finally:
+                waits_in_rollouts[0] = model.curiosity.time_update_wait
+
+        model.collect_rollouts = collect_and_note
     pretrain_before = pretrain_timer.totals.get("pretrain", 0.0)
+    end_before = pretrain_timer.totals.get("end_of_learn", 0.0)
     t0 = time.perf_counter()
     model.learn(timesteps)
     total = time.perf_counter() - t0
@@ -138,11 +151,15 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         out["cache_hit_rate"] = mod.cache_hits / max(1, mod.cache_lookups)
         # with overlap_ppo_update an update is waited for at the next rollout's first step (or at the end of
         # learn), not in maybe_train
-        out["curiosity_updates_s"] = out.get("curiosity_updates_s", 0.0) + mod.time_update_wait
+        # the end of learn waits for an update still running (outside any rollout): reported on its own row
+        out["end_of_learn_wait_s"] = pretrain_timer.totals.get("end_of_learn", 0.0) - end_before
+        out["curiosity_updates_s"] = out.get("curiosity_updates_s", 0.0) + waits_in_rollouts[0]
         out["pretrain_s"] = pretrain_timer.totals.get("pretrain", 0.0) - pretrain_before
+        out["waiting_for_worker_s"] = mod.time_scoring_wait
     out["policy_and_bookkeeping_s"] = (
         out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0) - out.get("curiosity_updates_s", 0.0)
     )
+    out["other_s"] = total - out["rollout_s"] - out["ppo_update_s"] - out.get("pretrain_s", 0.0) - out.get("end_of_learn_wait_s", 0.0)
     return out
 
 
@@ -210,15 +227,19 @@ def main() -> None:
     if args.gocu_model:
         print(f"(PPO_GoCu continued {args.gocu_model})")
     print("\nwhere the time goes (s)          PPO   PPO_GoCu" + "".join(f"  {labels[k]:>20s}" for k in extras))
-    for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "scoring_in_worker_s",
-                "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s", "total_s"):
+    for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "waiting_for_worker_s",
+                "scoring_in_worker_s", "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s",
+                "end_of_learn_wait_s", "other_s", "total_s"):
         extra = "".join(f"  {results[k].get(key, 0.0):20.1f}" for k in extras)
         print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}{extra}")
-    print("  (curiosity_inference_s: the rollout's own time in the module; scoring_in_worker_s: the predictor's scoring in the")
-    print("   worker thread, overlapping the next env step (async_scoring), not on the critical path unless waited for)")
+    print("  (curiosity_inference_s: the rollout's own time in the module, waiting_for_worker_s included: the part it waited")
+    print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker thread, overlapping the next")
+    print("   env step (async_scoring), not on the critical path unless waited for)")
+    print("  (end_of_learn_wait_s: learn's end waiting for an update still running; other_s: the rest of learn, outside the")
+    print("   rollouts, PPO's updates, pretraining and that wait)")
     print("  (with background updates, VAE/predictor training overlaps the rollouts; by default (overlap_ppo_update) it overlaps")
     print("   PPO's update and the next rollout waits for the rest: only the waits are on the critical path)")
-    print("  (curiosity_updates_s: time the rollouts (and the end of learn) waited for VAE/predictor updates; vae/predictor_training_s: the "
+    print("  (curiosity_updates_s: time the rollouts waited for VAE/predictor updates; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")
     print(f"  (pretrain_s is the whole random-policy pretraining phase (measured, not a remainder); "
           f"reward cache hit rate {gocu['cache_hit_rate']:.2f})")

@@ -698,6 +698,30 @@ def test_scoring_in_a_worker_thread_gives_the_same_rewards_and_state_bit_for_bit
     assert not differences(sync.state_dict(), deferred.state_dict())
 
 
+def test_waiting_for_the_worker_is_timed_as_part_of_inference(monkeypatch):
+    """time_scoring_wait is the caller's wait in collect() for a worker still scoring: a worker held up 50 ms
+    is waited for about that long, and the wait is inside time_inference; synchronous steps wait for nothing."""
+    import time
+
+    space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
+    module = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0)
+    frames = np.random.default_rng(2).integers(0, 256, (3, 2, 16, 16, 3), dtype=np.uint8)
+    module.step(frames[0], np.zeros(2, bool))
+    assert module.time_scoring_wait == 0.0
+    compute = module._compute
+
+    def slow(ticket):
+        time.sleep(0.05)
+        return compute(ticket)
+
+    monkeypatch.setattr(module, "_compute", slow)
+    before = module.time_inference
+    ticket = module.submit(frames[1], np.zeros(2, bool))
+    assert ticket.future is not None
+    module.collect(ticket)
+    assert 0.03 <= module.time_scoring_wait <= module.time_inference - before
+
+
 def test_state_dict_takes_the_scores_in_flight_first():
     space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
     module = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0)

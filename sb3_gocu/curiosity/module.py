@@ -420,6 +420,7 @@ class GoalCuriosityModule:
         self.cache_lookups = 0
         self.time_inference = 0.0
         self.time_inference_background = 0.0  # scoring in the worker thread (overlaps the caller's work)
+        self.time_scoring_wait = 0.0  # part of time_inference: the caller waiting for the worker's scores
         self.time_training = 0.0
         self.time_vae = 0.0
         self.time_predictor = 0.0
@@ -701,7 +702,9 @@ class GoalCuriosityModule:
         if not len(ticket.miss):
             computed = np.zeros(0, dtype=np.float32)
         elif ticket.future is not None:
+            t_wait = time.perf_counter()
             computed = ticket.future.result()
+            self.time_scoring_wait += time.perf_counter() - t_wait
             self.time_inference_background += ticket.compute_time
         else:
             computed = ticket.computed

@@ -100,7 +100,7 @@ def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int) -> float:
 
 
 def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dict[str, Any], gocu_model: str | None = None,
-        async_scoring: bool = True, overrides: dict[str, Any] | None = None) -> dict[str, float]:
+        async_scoring: bool = True, overrides: dict[str, Any] | None = None, model_attrs: dict[str, Any] | None = None) -> dict[str, float]:
     """One arm: ``algo`` for ``timesteps`` steps; ``overrides``: curiosity settings that replace those of
     ``curiosity_kwargs`` (a fresh agent) or of the loaded model (``gocu_model``)."""
     overrides = overrides or {}
@@ -118,6 +118,10 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
     else:
         curiosity_kwargs = {**curiosity_kwargs, **overrides}
         model = PPO_GoCu("CnnPolicy", venv, seed=seed, curiosity_kwargs=curiosity_kwargs, async_scoring=async_scoring, **PPO_SETTINGS)
+    for name, value in (model_attrs or {}).items():  # PPO_GoCu attributes (e.g. switch_interval)
+        if not hasattr(model, name):
+            raise ValueError(f"--also-model-kwargs: PPO_GoCu has no attribute {name!r}")
+        setattr(model, name, value)
     timer.wrap(model, "train", "ppo_update")
     if algo == "ppo_gocu":
         # wall time the rollouts wait for curiosity training (all of it when synchronous, only the joins when
@@ -146,6 +150,7 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         mod = model.curiosity
         out["curiosity_inference_s"] = mod.time_inference
         out["scoring_in_worker_s"] = mod.time_inference_background
+        out["scoring_in_worker_cpu_s"] = mod.cpu_inference_background
         out["vae_training_s"] = mod.time_vae
         out["predictor_training_s"] = mod.time_predictor
         out["cache_hit_rate"] = mod.cache_hits / max(1, mod.cache_lookups)
@@ -186,6 +191,9 @@ def main() -> None:
     parser.add_argument("--gocu-model", default=None, help="PPO_GoCu continues this trained model instead of starting afresh "
                         "(its own curiosity settings, but for those the --also-* arms set; "
                         "no pretraining); plain PPO still starts afresh")
+    parser.add_argument("--also-model-kwargs", action="append", default=None, metavar="JSON",
+                        help="also run PPO_GoCu with these PPO_GoCu attributes set, e.g. '{\"switch_interval\": 0.0001}' "
+                        "(another run each time the option is given)")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     curiosity_kwargs = json.loads(args.curiosity_kwargs)
@@ -198,6 +206,7 @@ def main() -> None:
           f"order {args.order}; malloc: {malloc}")
     raw = raw_env_rate(args.env, 16, min(args.timesteps, 32_000), args.seed)
     results = {}
+    labels_extra: dict[str, str] = {}
     order = ["ppo", "ppo_gocu"] if args.order == "ppo-first" else ["ppo_gocu", "ppo"]
     for algo in order:
         results[algo] = run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model)
@@ -210,6 +219,10 @@ def main() -> None:
             "ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
             overrides={"train_in_background": False, "overlap_ppo_update": False},
         )
+    for i, extra in enumerate(args.also_model_kwargs or []):
+        results[f"ppo_gocu_model_{i}"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
+                                             model_attrs=json.loads(extra))
+        labels_extra[f"ppo_gocu_model_{i}"] = extra
     if args.also_sync:
         results["ppo_gocu_sync"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, async_scoring=False)
     ppo, gocu = results["ppo"], results["ppo_gocu"]
@@ -218,9 +231,9 @@ def main() -> None:
     print(f"plain PPO                     {ppo['steps_per_s']:8.0f} steps/s")
     print(f"PPO_GoCu                      {gocu['steps_per_s']:8.0f} steps/s")
     print(f"time per step, GoCu / PPO     {ppo['steps_per_s'] / gocu['steps_per_s']:8.2f}x")
-    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_in_place", "ppo_gocu_sync") if k in results]
+    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_in_place", "ppo_gocu_sync", *labels_extra) if k in results]
     labels = {"ppo_gocu_background": "background updates", "ppo_gocu_in_place": "updates in place",
-              "ppo_gocu_sync": "synchronous scoring"}
+              "ppo_gocu_sync": "synchronous scoring", **labels_extra}
     for k in extras:
         r = results[k]
         print(f"PPO_GoCu, {labels[k]:20s}{r['steps_per_s']:8.0f} steps/s  ({ppo['steps_per_s'] / r['steps_per_s']:.2f}x PPO's time per step)")
@@ -228,13 +241,14 @@ def main() -> None:
         print(f"(PPO_GoCu continued {args.gocu_model})")
     print("\nwhere the time goes (s)          PPO   PPO_GoCu" + "".join(f"  {labels[k]:>20s}" for k in extras))
     for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "waiting_for_worker_s",
-                "scoring_in_worker_s", "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s",
+                "scoring_in_worker_s", "scoring_in_worker_cpu_s", "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s",
                 "end_of_learn_wait_s", "other_s", "total_s"):
         extra = "".join(f"  {results[k].get(key, 0.0):20.1f}" for k in extras)
         print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}{extra}")
     print("  (curiosity_inference_s: the rollout's own time in the module, waiting_for_worker_s included: the part it waited")
     print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker thread, overlapping the next")
-    print("   env step (async_scoring), not on the critical path unless waited for)")
+    print("   env step (async_scoring), not on the critical path unless waited for; scoring_in_worker_cpu_s: the worker's")
+    print("   CPU time in it, the rest of its wall time it waited for the GIL (or a core))")
     print("  (end_of_learn_wait_s: learn's end waiting for an update still running; other_s: the rest of learn, outside the")
     print("   rollouts, PPO's updates, pretraining and that wait)")
     print("  (with background updates, VAE/predictor training overlaps the rollouts; by default (overlap_ppo_update) it overlaps")

@@ -358,7 +358,7 @@ def test_a_nan_weight_set_by_hand_is_loud_not_silent(tmp_path):
         module.vae.encoder[0].weight[0, 0] = float("nan")
     module._sync_encoder()  # inference embeds with a copy of the VAE taken after each update
     module.begin_episodes(np.arange(2))  # both envs have goals: their rewards go through the broken VAE
-    assert module._goal_valid.all()
+    assert module._has_goals.all()
     raw, normalized = module.step(np.full((2, 2), 0.3, np.float32), np.zeros(2, bool))
     assert np.array_equal(raw, [0, 0]) and np.isfinite(normalized).all(), "no NaN bonus, the reward is 0"
     assert module.stats["nonfinite_rewards"] == 2
@@ -708,18 +708,20 @@ def test_waiting_for_the_worker_is_timed_as_part_of_inference(monkeypatch):
     frames = np.random.default_rng(2).integers(0, 256, (3, 2, 16, 16, 3), dtype=np.uint8)
     module.step(frames[0], np.zeros(2, bool))
     assert module.time_scoring_wait == 0.0
-    compute = module._compute
+    eq13 = module._eq13
 
-    def slow(ticket):
+    def slow(*args):  # the worker's scoring, held up
         time.sleep(0.05)
-        return compute(ticket)
+        return eq13(*args)
 
-    monkeypatch.setattr(module, "_compute", slow)
+    monkeypatch.setattr(module, "_eq13", slow)
     before = module.time_inference
     ticket = module.submit(frames[1], np.zeros(2, bool))
     assert ticket.future is not None
     module.collect(ticket)
     assert 0.03 <= module.time_scoring_wait <= module.time_inference - before
+    # the worker slept: its wall time counts the 50 ms, its CPU time does not
+    assert module.time_inference_background >= 0.05 > module.cpu_inference_background >= 0.0
 
 
 def test_state_dict_takes_the_scores_in_flight_first():

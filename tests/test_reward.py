@@ -1,5 +1,6 @@
 """The reward formulas (eq 13-16) and the fast predictor path against numbers computed by hand."""
 
+import copy
 import math
 
 import numpy as np
@@ -74,6 +75,39 @@ def test_curiosity_reward_eq13_by_hand():
     assert curiosity_reward(m, 1.0, "mean", 10.0, valid=valid).tolist() == pytest.approx([(1 - 0.35) / 10, 0.1])
     with pytest.raises(ValueError, match="aggregation"):
         curiosity_reward(m, aggregation="min")
+
+
+@pytest.mark.parametrize("aggregation", ["max", "mean"])
+def test_curiosity_reward_without_a_mask_equals_an_all_true_mask_to_the_bit(aggregation):
+    """The module scores rows whose episodes have all K goals without a mask (fewer tensor calls in the worker):
+    the values must be those of the masked formula exactly, or learning runs would not reproduce."""
+    m = th.rand(64, 50, generator=th.Generator().manual_seed(0))
+    full = th.ones(64, 50, dtype=th.bool)
+    assert th.equal(curiosity_reward(m, 1.0, aggregation, 10.0), curiosity_reward(m, 1.0, aggregation, 10.0, valid=full))
+
+
+def test_module_scores_envs_with_and_without_goals_in_one_batch():
+    """_eq13 on a batch mixing envs that have goals and envs that have none yet: alpha / delta for the latter,
+    eq 13 over the env's own K goals for the former (against the unfolded predictor)."""
+    space = spaces.Box(0, 255, (8, 8, 3), np.uint8)
+    module = GoalCuriosityModule(space, n_goals=3, goal_buffer_size=10, embed_dim=4, latent_dim=2, predictor_hidden=(8, 8), seed=0)
+    module.ensure_envs(3)
+    rng = np.random.default_rng(0)
+    goals = rng.integers(0, 256, (5, 8, 8, 3), dtype=np.uint8)
+    assert module.goal_buffer.add(goals, module.embed(goals), rng) == 5
+    module.sample_goals(np.array([0, 2]))  # env 1 keeps no goals
+    assert module._has_goals.tolist() == [True, False, True]
+    states = rng.integers(0, 256, (3, 8, 8, 3), dtype=np.uint8)
+    got = module.score_states(states)
+    with th.no_grad():
+        for e in range(3):
+            if e == 1:
+                assert got[e] == pytest.approx(module.alpha / module.reward_scale)
+                continue
+            phi_s, phi_g = module.embed(states[e : e + 1]), module.embed(module._goal_obs[e])
+            h = copy.deepcopy(module.predictor).eval().mastery(phi_s.expand(3, -1), phi_g).max()
+            assert got[e] == pytest.approx(float((module.alpha - h) / module.reward_scale), abs=1e-6)
+    assert np.array_equal(module.score_states(states[[0, 2]], np.array([0, 2])), got[[0, 2]])
 
 
 def test_labels_eq15_eq16_by_hand():
@@ -169,3 +203,17 @@ def test_module_pays_revisits_within_an_episode_by_the_decay(decay):
     assert last[0] == pytest.approx(r * factor(4), abs=1e-7)
     again, _ = mod.step(a, np.array([False, False]))
     assert again[0] == pytest.approx(r, abs=1e-7) and again[1] == pytest.approx(r * factor(6), abs=1e-7)
+
+
+@pytest.mark.parametrize("shape", [(32, 32, 3), (3, 32, 32), (21, 21)])
+def test_numpy_to_tensor_equals_the_torch_path_to_the_bit(shape):
+    """ObservationAdapter.to_tensor converts numpy batches in numpy (no GIL round trips in the scoring worker):
+    the same float tensor, layout and contiguity as the torch path it replaces."""
+    from sb3_gocu.curiosity.observations import ObservationAdapter
+
+    adapter = ObservationAdapter(spaces.Box(0, 255, shape, np.uint8))
+    raw = np.random.default_rng(0).integers(0, 256, (4, *shape), dtype=np.uint8)
+    got, ref = adapter.to_tensor(raw), adapter.to_tensor(th.from_numpy(raw))
+    assert got.dtype == th.float32 and got.is_contiguous() and got.shape == ref.shape == (4, *((1, *shape) if len(shape) == 2 else (3, 32, 32)))
+    assert th.equal(got, ref)
+    assert float(got.max()) <= 1.0 and float(got.max()) > 0.9

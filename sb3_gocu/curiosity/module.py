@@ -128,13 +128,14 @@ class ScoringTicket:
         self.env_indices = np.zeros(0, dtype=np.int64)
         self.keys: list[bytes] = []
         self.episode_ids = np.zeros(0, dtype=np.int64)
-        self.valid: th.Tensor | None = None
+        self.has_goals = np.zeros(0, dtype=bool)  # whether each miss row's episode has its K goals
         self.goal_parts: th.Tensor | None = None
         self.folded: FoldedPredictor | None = None
         self.factor: np.ndarray | None = None  # revisit factor
         self.recording = False
         self.future: Future | None = None
         self.compute_time = 0.0
+        self.compute_cpu_time = 0.0  # CPU time of the computing thread (the rest of compute_time: waiting for the GIL or a core)
         self.result: tuple[np.ndarray, np.ndarray] | None = None
 
 
@@ -382,7 +383,7 @@ class GoalCuriosityModule:
         # per-env state
         self.n_envs = 0
         self._goal_obs = np.zeros((0, n_goals, *raw_shape), dtype=raw_dtype)
-        self._goal_valid = th.zeros(0, n_goals, dtype=th.bool)
+        self._has_goals = np.zeros(0, dtype=bool)  # per env: its episode has K goals (none while the goal buffer is empty)
         self._goal_parts = th.zeros(0, n_goals, self.predictor.hidden[0].out_features)
         self._episode_ids = np.zeros(0, dtype=np.int64)
         self._episodes: list[deque] = []
@@ -421,6 +422,7 @@ class GoalCuriosityModule:
         self.time_inference = 0.0
         self.time_inference_background = 0.0  # scoring in the worker thread (overlaps the caller's work)
         self.time_scoring_wait = 0.0  # part of time_inference: the caller waiting for the worker's scores
+        self.cpu_inference_background = 0.0  # CPU time of the worker's scoring (its wall time: time_inference_background)
         self.time_training = 0.0
         self.time_vae = 0.0
         self.time_predictor = 0.0
@@ -454,17 +456,24 @@ class GoalCuriosityModule:
         env_indices = np.arange(len(raw)) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
         self.ensure_envs(int(env_indices.max()) + 1)
         envs = th.from_numpy(env_indices)
-        return self._eq13(self.embed(raw), self._goal_parts[envs], self._goal_valid[envs], self._folded).numpy()
+        return self._eq13(self.embed(raw), self._goal_parts[envs], self._has_goals[env_indices], self._folded).numpy()
 
     @th.inference_mode()
-    def _eq13(self, phi: th.Tensor, goal_parts: th.Tensor, valid: th.Tensor, folded: FoldedPredictor) -> th.Tensor:
-        """Raw r_gc of states (phi) against their episodes' goals (goal halves, validity); a state whose
-        episode has no goal yet gets h = 0, i.e. alpha / delta."""
+    def _eq13(self, phi: th.Tensor, goal_parts: th.Tensor, has_goals: np.ndarray, folded: FoldedPredictor) -> th.Tensor:
+        """Raw r_gc of states (phi) against their episodes' goals (goal halves; ``has_goals``: whether each
+        state's episode has its K goals); a state whose episode has no goal yet gets h = 0, i.e. alpha / delta.
+
+        Few tensor operations on purpose: in the scoring worker each one gives up the GIL and waits to get it
+        back from the env stepping (``benchmarks/gil_switch.py``), so the common case (every episode has its
+        goals) goes straight through."""
+        if has_goals.all():
+            mastery = folded.mastery_from_parts(folded.state_part(phi), goal_parts)
+            return curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale)
         r = th.full((len(phi),), self.alpha / self.reward_scale)
-        rows = valid[:, 0].nonzero()[:, 0]
+        rows = th.from_numpy(np.flatnonzero(has_goals))
         if len(rows):
             mastery = folded.mastery_from_parts(folded.state_part(phi[rows]), goal_parts[rows])
-            r[rows] = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale, valid=valid[rows])
+            r[rows] = curiosity_reward(mastery, self.alpha, self.aggregation, self.reward_scale)
         return r
 
     def ensure_envs(self, n_envs: int) -> None:
@@ -474,7 +483,7 @@ class GoalCuriosityModule:
             return
         extra = n_envs - old
         self._goal_obs = np.concatenate([self._goal_obs, np.zeros((extra, *self._goal_obs.shape[1:]), dtype=self._goal_obs.dtype)])
-        self._goal_valid = th.cat([self._goal_valid, th.zeros(extra, self.n_goals, dtype=th.bool)])
+        self._has_goals = np.concatenate([self._has_goals, np.zeros(extra, dtype=bool)])
         self._goal_parts = th.cat([self._goal_parts, th.zeros(extra, *self._goal_parts.shape[1:])])
         self._episode_ids = np.concatenate([self._episode_ids, np.arange(self._next_episode_id, self._next_episode_id + extra)])
         self._next_episode_id += extra
@@ -513,22 +522,22 @@ class GoalCuriosityModule:
         if len(env_indices) == 0:
             return
         idx = self.goal_buffer.sample(len(env_indices), self.n_goals, self.rng)
-        t_env = th.from_numpy(env_indices)
         for e in env_indices:
             self._reward_cache[e].clear()
         if idx.shape[1] == 0:
-            self._goal_valid[t_env] = False
+            self._has_goals[env_indices] = False
             return
+        t_env = th.from_numpy(env_indices)
         self._goal_obs[env_indices] = self.goal_buffer.observations[idx]
         self._goal_parts[t_env] = self._folded.goal_part(self.goal_buffer.embeddings[th.from_numpy(idx)])
-        self._goal_valid[t_env] = True
+        self._has_goals[env_indices] = True
 
     @th.inference_mode()
     def _refresh_active_goals(self) -> None:
         """Recompute the goal halves of the active goals after the predictor or the VAE changed."""
         for e in range(self.n_envs):
             self._reward_cache[e].clear()
-            if bool(self._goal_valid[e, 0]):
+            if self._has_goals[e]:
                 self._goal_parts[e] = self._folded.goal_part(self.embed(self._goal_obs[e]))
 
     @staticmethod
@@ -579,7 +588,7 @@ class GoalCuriosityModule:
                 for j in todo:
                     self._phi_cache[keys[j]] = (ticket, j)
             envs = th.from_numpy(env_indices[m_idx])
-            ticket.valid = self._goal_valid[envs].clone()
+            ticket.has_goals = self._has_goals[env_indices[m_idx]]
             ticket.goal_parts = self._goal_parts[envs].clone()  # the episode's goals: a new episode may start before scoring
             ticket.folded = self._folded
             for j in miss:
@@ -590,14 +599,15 @@ class GoalCuriosityModule:
     def _compute(self, ticket: "ScoringTicket") -> np.ndarray:
         """phi of the ticket's ``embed_rows`` and eq 13 for its ``miss`` rows (pure: reads only what the ticket
         captured, writes only the ticket's own phi rows; any thread)."""
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         for j, earlier, row in ticket.phi_from:  # computed before this one (one worker, in order; or the caller)
             ticket.phi[j] = earlier.phi[row]
         if len(ticket.embed_rows):
             phi = ticket.encoder.embed(self.adapter.to_tensor(ticket.raw, self.device)).cpu()
             ticket.phi[ticket.embed_rows] = phi.numpy()
-        r = self._eq13(th.from_numpy(ticket.phi[ticket.miss]), ticket.goal_parts, ticket.valid, ticket.folded)
+        r = self._eq13(th.from_numpy(ticket.phi[ticket.miss]), ticket.goal_parts, ticket.has_goals, ticket.folded)
         ticket.compute_time = time.perf_counter() - t0
+        ticket.compute_cpu_time = time.thread_time() - c0
         return r.numpy()
 
     def _commit(self, ticket: "ScoringTicket", computed: np.ndarray) -> None:
@@ -706,6 +716,7 @@ class GoalCuriosityModule:
             computed = ticket.future.result()
             self.time_scoring_wait += time.perf_counter() - t_wait
             self.time_inference_background += ticket.compute_time
+            self.cpu_inference_background += ticket.compute_cpu_time
         else:
             computed = ticket.computed
         self._commit(ticket, computed)
@@ -1164,7 +1175,7 @@ class GoalCuriosityModule:
             "torch_rng": self._torch_gen.get_state(),
             "envs": {
                 "goal_obs": th.from_numpy(self._goal_obs.copy()),
-                "goal_valid": self._goal_valid.clone(),
+                "goal_valid": th.from_numpy(self._has_goals.copy())[:, None].expand(-1, self.n_goals).clone(),
                 "episode_ids": th.from_numpy(self._episode_ids.copy()),
                 "episodes": [th.from_numpy(np.stack(ep)) if len(ep) else th.zeros(0) for ep in self._episodes],
                 "finished_episodes": [th.from_numpy(ep) for ep in self.finished_episodes],
@@ -1223,7 +1234,7 @@ class GoalCuriosityModule:
             n = int(envs["episode_ids"].shape[0])
             self.n_envs = 0
             self._goal_obs = self._goal_obs[:0]
-            self._goal_valid = self._goal_valid[:0]
+            self._has_goals = self._has_goals[:0]
             self._goal_parts = self._goal_parts[:0]
             self._episode_ids = self._episode_ids[:0]
             self._episodes, self._reward_cache, self._visit_counts, self._pending = [], [], [], []
@@ -1234,7 +1245,7 @@ class GoalCuriosityModule:
             self.rng.bit_generator.state = rng_state
             self.normalizer.load_state_dict(state["normalizer"])
             self._goal_obs[:] = envs["goal_obs"].numpy()
-            self._goal_valid[:] = envs["goal_valid"]
+            self._has_goals[:] = envs["goal_valid"][:, 0].numpy()  # (n_envs, K), all or none of K per env
             self._episode_ids[:] = envs["episode_ids"].numpy()
             self._next_episode_id = int(envs["next_episode_id"])
             for e, ep in enumerate(envs["episodes"]):

@@ -25,11 +25,10 @@ def curiosity_reward(
     :return: (n,)
     """
     if valid is not None:
-        count = valid.sum(dim=1)
         if aggregation == "max":
             h = th.where(valid, mastery, th.zeros_like(mastery)).max(dim=1).values if mastery.shape[1] else mastery.new_zeros(len(mastery))
         elif aggregation == "mean":
-            h = th.where(valid, mastery, th.zeros_like(mastery)).sum(dim=1) / count.clamp(min=1)
+            h = th.where(valid, mastery, th.zeros_like(mastery)).sum(dim=1) / valid.sum(dim=1).clamp(min=1)
         else:
             raise ValueError(f"aggregation must be one of {AGGREGATIONS}, got {aggregation!r}")
         return (alpha - h) / scale
@@ -38,7 +37,7 @@ def curiosity_reward(
     elif aggregation == "max":
         h = mastery.max(dim=1).values
     elif aggregation == "mean":
-        h = mastery.mean(dim=1)
+        h = mastery.sum(dim=1) / mastery.shape[1]  # as with a mask of all True, to the bit
     else:
         raise ValueError(f"aggregation must be one of {AGGREGATIONS}, got {aggregation!r}")
     return (alpha - h) / scale

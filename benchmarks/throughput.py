@@ -72,9 +72,12 @@ def fix_malloc_thresholds(trim: int = 1 << 30, mmap: int = 32 << 20) -> bool:
     By default glibc raises both thresholds as the process frees large blocks, so a process's first training
     run keeps giving memory back and faulting it in again, and the runs after it do not: measured in one
     process, plain PPO's update took 64.3 s when it ran first and 48.1 s when it ran after PPO_GoCu (40,960
-    steps, README "Throughput"). Fixed thresholds give every run the same allocator. :return: whether glibc
+    steps, README "Throughput"). Fixed thresholds give every run the same allocator, in this process and (through
+    ``MALLOC_TRIM_THRESHOLD_`` and ``MALLOC_MMAP_THRESHOLD_``) in the processes it starts. :return: whether glibc
     took both settings
     """
+    # child processes (PPO_GoCu's worker process) read the same settings from the environment at their start
+    os.environ["MALLOC_TRIM_THRESHOLD_"], os.environ["MALLOC_MMAP_THRESHOLD_"] = str(trim), str(mmap)
     try:
         libc = ctypes.CDLL("libc.so.6")
     except OSError:
@@ -194,6 +197,9 @@ def main() -> None:
     parser.add_argument("--also-model-kwargs", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with these PPO_GoCu attributes set, e.g. '{\"switch_interval\": 0.0001}' "
                         "(another run each time the option is given)")
+    parser.add_argument("--also-curiosity-kwargs", action="append", default=None, metavar="JSON",
+                        help="also run PPO_GoCu with these GoalCuriosityModule keywords on top of --curiosity-kwargs, "
+                        "e.g. '{\"scoring_process\": true}' (another run each time the option is given)")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     curiosity_kwargs = json.loads(args.curiosity_kwargs)
@@ -223,6 +229,10 @@ def main() -> None:
         results[f"ppo_gocu_model_{i}"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
                                              model_attrs=json.loads(extra))
         labels_extra[f"ppo_gocu_model_{i}"] = extra
+    for i, extra in enumerate(args.also_curiosity_kwargs or []):
+        results[f"ppo_gocu_curiosity_{i}"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
+                                                 overrides=json.loads(extra))
+        labels_extra[f"ppo_gocu_curiosity_{i}"] = extra
     if args.also_sync:
         results["ppo_gocu_sync"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, async_scoring=False)
     ppo, gocu = results["ppo"], results["ppo_gocu"]

@@ -64,9 +64,9 @@ class PPO_GoCu(PPO):
         limit and the return at 0.0 at 120k steps, where the non-episodic stream learns the task
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` (``n_goals``,
         ``goal_strategy``, ``reward_scale``, ...); its ``intrinsic_gamma`` is the curiosity stream's discount
-    :param async_scoring: score the curiosity of each rollout step in the module's worker thread while the envs
-        take the next step (the predictor's matrix products release the GIL, env stepping is Python on the other
-        core). The rewards are the same bit for bit; a step's ``infos["gocu_*"]`` entries are written one step
+    :param async_scoring: score the curiosity of each rollout step in the module's worker while the envs take the
+        next step: a process by default, a thread with ``curiosity_kwargs={"scoring_process": False}`` (see
+        :class:`~sb3_gocu.GoalCuriosityModule`). The rewards are the same bit for bit; a step's ``infos["gocu_*"]`` entries are written one step
         later (at the rollout end for the last step), so a callback reading them in ``on_step`` sees the previous
         step's. Used when the training env has one :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``)
     :param switch_interval: the interpreter's GIL switch interval in seconds (``sys.setswitchinterval``) while a
@@ -368,6 +368,8 @@ class PPO_GoCu(PPO):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfPPOGoCu:
+        if self.curiosity is not None and self.curiosity.scoring_process and self.env is not None and self._deferring_wrapper(self.env) is not None:
+            self.curiosity.start_scoring_process()  # starts beside pretraining
         if reset_num_timesteps:
             self.global_rng.pending = None
         else:

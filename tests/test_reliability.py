@@ -533,16 +533,20 @@ def test_two_runs_with_one_seed_give_identical_updates_and_rewards():
     assert differences(parameters(a), parameters(c)), "another seed gives another run"
 
 
-def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit():
-    """overlap_ppo_update (the default) runs the curiosity updates while PPO updates the policy: the same
-    policy, module and rewards as running them in place, bit for bit."""
-    runs, overlapped = [], []
+@pytest.mark.parametrize("process", [True, False], ids=["fits_in_the_worker_process", "fits_in_a_thread"])
+def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit(process):
+    """overlap_ppo_update (the default) runs the curiosity updates while PPO updates the policy, in the worker
+    process (``scoring_process``) or in a thread: the same policy, module and rewards as running them in
+    place, bit for bit."""
+    runs, overlapped, jobs = [], [], []
     for overlap in (True, False):
-        model = small_model(curiosity=dict(predictor_train_freq=128, vae_train_freq=256, overlap_ppo_update=overlap))
+        curiosity = dict(predictor_train_freq=128, vae_train_freq=256, overlap_ppo_update=overlap, scoring_process=process)
+        model = small_model(curiosity=curiosity)
         train = model.train
 
         def spy(train=train, model=model):
             overlapped.append(model.curiosity.update_running)
+            jobs.append(type(model.curiosity._job).__name__)
             train()
 
         model.train = spy
@@ -550,6 +554,7 @@ def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit():
         runs.append(model)
     a, b = runs
     assert overlapped[:8].count(True) == 4 and not any(overlapped[8:]), "updates ran beside PPO's with overlap only"
+    assert {j for j, o in zip(jobs, overlapped) if o} == {"_ProcessFuture" if process else "Thread"}
     assert a.curiosity.stats["predictor_pairs"] > 0 and a.curiosity.time_vae > 0
     assert not differences(parameters(a), parameters(b))
     assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())
@@ -704,17 +709,19 @@ def test_waiting_for_the_worker_is_timed_as_part_of_inference(monkeypatch):
     import time
 
     space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
-    module = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0)
+    module = GoalCuriosityModule(space, **SMALL_CURIOSITY, scoring_process=False, seed=0)  # the worker thread
     frames = np.random.default_rng(2).integers(0, 256, (3, 2, 16, 16, 3), dtype=np.uint8)
     module.step(frames[0], np.zeros(2, bool))
     assert module.time_scoring_wait == 0.0
-    eq13 = module._eq13
+    import sb3_gocu.curiosity.module as module_file
+
+    score_rows = module_file.score_rows
 
     def slow(*args):  # the worker's scoring, held up
         time.sleep(0.05)
-        return eq13(*args)
+        return score_rows(*args)
 
-    monkeypatch.setattr(module, "_eq13", slow)
+    monkeypatch.setattr(module_file, "score_rows", slow)
     before = module.time_inference
     ticket = module.submit(frames[1], np.zeros(2, bool))
     assert ticket.future is not None
@@ -787,7 +794,8 @@ def test_ppo_gocu_scoring_in_a_worker_thread_matches_the_synchronous_run(episodi
 
     for async_scoring in (True, False):
         th.manual_seed(0)
-        model = small_model(curiosity=dict(predictor_train_freq=128), async_scoring=async_scoring, intrinsic_episodic=episodic)
+        curiosity = dict(predictor_train_freq=128, scoring_process=False)  # the process: tests/test_scoring_process.py
+        model = small_model(curiosity=curiosity, async_scoring=async_scoring, intrinsic_episodic=episodic)
         model.env.envs[0].unwrapped.max_steps = 7  # truncations: the episodic stream bootstraps its head
         cb = Infos()
         model.learn(256, callback=cb)

@@ -1,0 +1,314 @@
+"""Scoring states against their episodes' goals (eq 13), in the caller, a worker thread or a worker process.
+
+:func:`eq13_rows` is the reward of a batch of states given their first-layer state halves' inputs (phi) and
+their episodes' goal halves; :func:`score_rows` embeds the rows not embedded yet and applies it. Both are
+pure functions of their arguments, so the module can run them wherever it likes:
+
+* in the caller's thread (``GoalCuriosityModule.step``);
+* in a worker thread (``submit(..., background=True)``), overlapping the next env step. The worker needs the
+  GIL for every tensor operation, and the env stepping holds it most of the time: measured on DoorKey-8x8,
+  the worker spent 39% of its wall time waiting for it (``benchmarks/results/throughput_doorkey8_lean.txt``);
+* in a worker process (:class:`ProcessScorer`), which has its own interpreter and so its own GIL. It keeps a
+  copy of the encoder, of the folded predictor and of each env's goal halves, sent to it only when they
+  change; per step it receives the raw observations to embed and the memoised phi of the others, and sends
+  back phi and the rewards. The process runs the same operations on the same inputs, with as many torch
+  threads as the caller had, so its values are the same to the bit (``tests/test_scoring_process.py``).
+
+No Stable-Baselines3 import.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+import time
+import traceback
+import weakref
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+import torch as th
+
+from sb3_gocu.curiosity.networks import FoldedPredictor
+from sb3_gocu.curiosity.reward import curiosity_reward
+
+
+@th.inference_mode()
+def eq13_rows(
+    phi: th.Tensor,
+    goal_parts: th.Tensor,
+    has_goals: np.ndarray,
+    folded: FoldedPredictor,
+    alpha: float,
+    aggregation: str,
+    reward_scale: float,
+) -> th.Tensor:
+    """Raw r_gc of states (phi, (n, d)) against their episodes' goals (goal halves, (n, K, h)); ``has_goals``
+    says whether each state's episode has its K goals, and a state whose episode has none yet gets h = 0, i.e.
+    alpha / delta.
+
+    Few tensor operations on purpose: in a worker thread each one gives up the GIL and waits to get it back
+    from the env stepping (``benchmarks/gil_switch.py``), so the common case (every episode has its goals)
+    goes straight through."""
+    if has_goals.all():
+        mastery = folded.mastery_from_parts(folded.state_part(phi), goal_parts)
+        return curiosity_reward(mastery, alpha, aggregation, reward_scale)
+    r = th.full((len(phi),), alpha / reward_scale)
+    rows = th.from_numpy(np.flatnonzero(has_goals))
+    if len(rows):
+        mastery = folded.mastery_from_parts(folded.state_part(phi[rows]), goal_parts[rows])
+        r[rows] = curiosity_reward(mastery, alpha, aggregation, reward_scale)
+    return r
+
+
+@th.inference_mode()
+def score_rows(
+    phi: np.ndarray,
+    embed_pos: np.ndarray,
+    raw: np.ndarray | None,
+    encoder: Any,
+    to_tensor: Any,
+    goal_parts: th.Tensor,
+    has_goals: np.ndarray,
+    folded: FoldedPredictor,
+    eq13_args: tuple[float, str, float],
+) -> np.ndarray:
+    """Embed ``raw`` into the rows ``embed_pos`` of ``phi`` (in place: (n, d) float32, the other rows known),
+    then eq 13 of every row. :return: raw r_gc, (n,) float32"""
+    if len(embed_pos):
+        phi[embed_pos] = encoder.embed(to_tensor(raw)).cpu().numpy()
+    return eq13_rows(th.from_numpy(phi), goal_parts, has_goals, folded, *eq13_args).numpy()
+
+
+class _ProcessFuture:
+    """What :meth:`ProcessScorer.submit` and :meth:`ProcessScorer.submit_fit` return: ``result()`` waits for
+    the process's answer (a ticket's rewards; a fit's statistics and the networks' new states)."""
+
+    def __init__(self, scorer: "ProcessScorer", ticket: Any, tid: int) -> None:
+        self._scorer, self.ticket, self.tid = scorer, ticket, tid
+        self._done = False
+        self._result: Any = None
+
+    def done(self) -> bool:
+        return self._done
+
+    def result(self) -> Any:
+        while not self._done:
+            self._scorer._receive_one()
+        return self._result
+
+
+class ProcessScorer:
+    """Scores :class:`~sb3_gocu.curiosity.module.ScoringTicket` s in a child process, in submission order, and
+    runs the VAE's and the predictor's fits there too (:meth:`submit_fit`), between two rollouts.
+
+    The child is started with ``python -c`` (not ``multiprocessing``: the caller's script, guarded by
+    ``if __name__ == "__main__"`` or not, is not run again) and talks over two pipes. It exits when the pipes close
+    (this object is collected or :meth:`close` is called, or the parent dies).
+
+    :param to_tensor: picklable callable turning a raw batch into the encoder's input (the module's adapter)
+    :param num_threads: torch threads of the child (default: the caller's ``torch.get_num_threads()``, which
+        keeps the values the same to the bit as scoring in the caller)
+    """
+
+    def __init__(self, to_tensor: Any, num_threads: int | None = None) -> None:
+        num_threads = th.get_num_threads() if num_threads is None else int(num_threads)
+        if num_threads < 1:
+            raise ValueError(f"num_threads must be >= 1, got {num_threads}")
+        to_child_r, to_child_w = os.pipe()
+        from_child_r, from_child_w = os.pipe()
+        code = f"from sb3_gocu.curiosity.scoring import _serve; _serve({to_child_r}, {from_child_w}, {num_threads})"
+        self._proc = subprocess.Popen(
+            [sys.executable, "-c", code],
+            pass_fds=(to_child_r, from_child_w),
+            stdin=subprocess.DEVNULL,
+            env={**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)},  # the caller's modules
+        )
+        os.close(to_child_r)
+        os.close(from_child_w)
+        self._send = Connection(to_child_w, readable=False)
+        self._recv = Connection(from_child_r, writable=False)
+        self._finalizer = weakref.finalize(self, ProcessScorer._shutdown, self._send, self._recv, self._proc)
+        self._send.send_bytes(pickle.dumps(("init", to_tensor), protocol=pickle.HIGHEST_PROTOCOL))
+        self._encoder: Any = None  # the objects the child holds copies of
+        self._folded: Any = None
+        self._goal_versions: dict[int, int] = {}
+        self._next_tid = 0
+        self._in_flight: list[_ProcessFuture] = []  # in submission order, answers not received yet
+        self.bytes_sent = 0
+
+    @staticmethod
+    def _shutdown(send: Connection, recv: Connection, proc: subprocess.Popen) -> None:
+        for conn in (send, recv):
+            try:
+                conn.close()
+            except OSError:
+                pass
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+    def close(self) -> None:
+        """Wait for the answers still due, then stop the child."""
+        while self._in_flight:
+            self._receive_one()
+        self._finalizer()
+
+    def submit(self, ticket: Any, eq13_args: tuple[float, str, float]) -> _ProcessFuture:
+        """Send a ticket (its ``miss`` rows: phi known or to embed, their envs' goals) to the child."""
+        if self._proc.poll() is not None:
+            raise self._ended()
+        tid = self._next_tid
+        self._next_tid += 1
+        miss = ticket.miss
+        phi = ticket.phi[miss]
+        embed_pos = np.searchsorted(miss, ticket.embed_rows)
+        refs = []  # (position in miss, earlier tid, earlier row): phi the child is computing (or has)
+        for j, earlier, row in ticket.phi_from:
+            pos = int(np.searchsorted(miss, j))
+            fut = earlier.future
+            if isinstance(fut, _ProcessFuture) and fut._scorer is self and not fut.done():
+                refs.append((pos, fut.tid, int(np.searchsorted(earlier.miss, row))))
+            else:  # computed in the caller, or its answer is back: the caller has it
+                if fut is not None:
+                    fut.result()
+                phi[pos] = earlier.phi[row]
+        envs = ticket.env_indices[miss]
+        goals: dict[int, th.Tensor] = {}
+        for i, (e, version) in enumerate(zip(envs.tolist(), ticket.goal_versions.tolist())):
+            if self._goal_versions.get(e) != version and e not in goals:
+                goals[e] = ticket.goal_parts[i].clone()
+                self._goal_versions[e] = version
+        message: dict[str, Any] = {
+            "tid": tid, "phi": phi, "embed_pos": embed_pos, "raw": ticket.raw if len(embed_pos) else None, "refs": refs,
+            "envs": envs, "has_goals": ticket.has_goals, "goals": goals, "eq13": eq13_args,
+            "keep_from": self._in_flight[0].tid if self._in_flight else tid,
+        }
+        if len(embed_pos) and ticket.encoder is not self._encoder:
+            message["encoder"] = self._encoder = ticket.encoder
+        if ticket.folded is not self._folded:
+            message["folded"] = self._folded = ticket.folded
+        payload = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+        self.bytes_sent += len(payload)
+        try:
+            self._send.send_bytes(payload)
+        except OSError as error:
+            raise self._ended() from error
+        future = _ProcessFuture(self, ticket, tid)
+        self._in_flight.append(future)
+        return future
+
+    def submit_fit(self, shell: Any, torch_rng: th.Tensor, jobs: list[tuple[str, dict[str, Any]]]) -> _ProcessFuture:
+        """Send fits to the child: ``jobs`` (``("predictor" | "vae", keywords of the module's ``_fit_*``)``), run
+        in order on ``shell`` (a module holding only what the fits read: the networks, their optimisers and the
+        settings) with a torch generator in state ``torch_rng``. The future's result is ``(fits, states,
+        torch_rng)``: each job's statistics, the new ``state_dict`` of each network and optimiser the jobs
+        trained, and the generator's state after them. The child runs the same operations on copies of the
+        same objects with the caller's torch thread count, so the new states are the same to the bit as fitting
+        in the caller (``tests/test_scoring_process.py``)."""
+        if self._proc.poll() is not None:
+            raise self._ended()
+        tid = self._next_tid
+        self._next_tid += 1
+        message = {"fit": jobs, "tid": tid, "shell": shell, "torch_rng": torch_rng,
+                   "keep_from": self._in_flight[0].tid if self._in_flight else tid}
+        payload = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+        self.bytes_sent += len(payload)
+        try:
+            self._send.send_bytes(payload)
+        except OSError as error:
+            raise self._ended() from error
+        future = _ProcessFuture(self, None, tid)
+        self._in_flight.append(future)
+        return future
+
+    def _ended(self) -> RuntimeError:
+        return RuntimeError(
+            f"the GoCu scoring process ended (exit code {self._proc.poll()}; its error output, if any, is above): "
+            "the scores in flight are lost, so the run cannot go on"
+        )
+
+    def _receive_one(self) -> None:
+        future = self._in_flight[0]
+        try:
+            answer = pickle.loads(self._recv.recv_bytes())
+        except (EOFError, OSError) as error:
+            raise self._ended() from error
+        if answer[0] == "error":
+            self._in_flight.pop(0)
+            future._done = True
+            raise RuntimeError(f"the GoCu scoring process failed:\n{answer[1]}")
+        tid = answer[1]
+        if tid != future.tid:
+            raise RuntimeError(f"the GoCu scoring process answered ticket {tid}, expected {future.tid}")
+        self._in_flight.pop(0)
+        if answer[0] == "fit":
+            future._result = answer[2:]
+        else:
+            _, _, phi, rewards, wall, cpu = answer
+            ticket = future.ticket
+            ticket.phi[ticket.miss] = phi
+            ticket.compute_time, ticket.compute_cpu_time = wall, cpu
+            future._result = rewards
+        future._done = True
+
+
+def _serve(read_fd: int, write_fd: int, num_threads: int) -> None:
+    """The child's loop: answer every ticket in order; exit when the parent closes its end. A ticket's
+    ``refs`` point at rows (positions in ``miss``) of earlier tickets whose phi the parent has not taken yet."""
+    th.set_num_threads(num_threads)
+    recv, send = Connection(read_fd, writable=False), Connection(write_fd, readable=False)
+    to_tensor = encoder = folded = None
+    goals: dict[int, th.Tensor] = {}
+    phis: dict[int, np.ndarray] = {}  # phi of the tickets the parent has not taken yet
+    while True:
+        try:
+            message = pickle.loads(recv.recv_bytes())
+        except (EOFError, OSError):
+            return
+        try:
+            if isinstance(message, tuple):
+                to_tensor = message[1]
+                continue
+            for tid in [t for t in phis if t < message["keep_from"]]:
+                del phis[tid]
+            if "fit" in message:
+                send.send_bytes(pickle.dumps(("fit", message["tid"], *_fit(message)), protocol=pickle.HIGHEST_PROTOCOL))
+                continue
+            t0, c0 = time.perf_counter(), time.thread_time()
+            encoder = message.get("encoder", encoder)
+            folded = message.get("folded", folded)
+            goals.update(message["goals"])
+            phi = message["phi"]
+            for pos, tid, row in message["refs"]:
+                phi[pos] = phis[tid][row]
+            envs = message["envs"].tolist()
+            goal_parts = th.stack([goals[e] for e in envs]) if envs else th.zeros(0)
+            rewards = score_rows(
+                phi, message["embed_pos"], message["raw"], encoder, to_tensor, goal_parts, message["has_goals"], folded, message["eq13"]
+            )
+            phis[message["tid"]] = phi
+            answer = ("ok", message["tid"], phi, rewards, time.perf_counter() - t0, time.thread_time() - c0)
+        except BaseException:
+            answer = ("error", traceback.format_exc())
+        send.send_bytes(pickle.dumps(answer, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _fit(message: dict[str, Any]) -> tuple[list, dict[str, dict], th.Tensor]:
+    """Run a :meth:`ProcessScorer.submit_fit` message's fits on its shell: (statistics, new states, generator state)."""
+    shell = message["shell"]
+    shell._torch_gen = th.Generator()
+    shell._torch_gen.set_state(message["torch_rng"])
+    fits, states = [], {}
+    for name, job in message["fit"]:
+        if name == "predictor":
+            fits.append((name, shell._fit_predictor(**job)))
+            states.update(predictor=shell.predictor.state_dict(), predictor_optimizer=shell.predictor_optimizer.state_dict())
+        else:
+            fits.append((name, shell._fit_vae(**job)))
+            states.update(vae=shell.vae.state_dict(), vae_optimizer=shell.vae_optimizer.state_dict())
+    return fits, states, shell._torch_gen.get_state()

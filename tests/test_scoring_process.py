@@ -1,0 +1,133 @@
+"""Scoring in a worker process (``scoring_process=True``): the same values as scoring in the caller, bit for bit."""
+
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_gocu import GoalCuriosityModule, PPO_GoCu
+from sb3_gocu.curiosity.scoring import ProcessScorer
+
+from conftest import SMALL_CURIOSITY, ChainEnv
+
+SPACE = spaces.Box(0, 255, (16, 16, 3), np.uint8)
+
+
+def frames_with_repeats(n_steps: int, n_envs: int, seed: int) -> np.ndarray:
+    """Frames drawn from a small pool, so that states recur within and across envs and steps (memo hits,
+    rows embedded by an earlier ticket still in flight)."""
+    rng = np.random.default_rng(seed)
+    pool = rng.integers(0, 256, (12, 16, 16, 3), dtype=np.uint8)
+    return pool[rng.integers(0, len(pool), (n_steps, n_envs))]
+
+
+def run_module(mode: str, frames: np.ndarray, dones: np.ndarray, in_flight: int) -> tuple[list, GoalCuriosityModule]:
+    """Feed the frames through a fresh module: ``sync`` (step), ``thread`` or ``process`` (submit, with up to
+    ``in_flight`` tickets outstanding); a predictor and a VAE update halfway (new encoder, folded predictor and
+    goal halves)."""
+    module = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, revisit_decay="none", scoring_process=mode == "process", seed=3)
+    module.recording = True
+    module.pretrain()
+    out, tickets = [], []
+    for t, (f, d) in enumerate(zip(frames, dones)):
+        if t == len(frames) // 4:  # goals from the episodes so far: later episodes are scored against them
+            module.collect_all()
+            module.add_finished_episode_goals()
+        if t == len(frames) // 2:
+            module.collect_all()
+            module.train_predictor()
+            module.train_vae()
+        if mode == "sync":
+            out.append(module.step(f, d))
+            continue
+        tickets.append(module.submit(f, d))
+        if len(tickets) > in_flight:
+            out.append(module.collect(tickets.pop(0)))
+    out += [module.collect(t) for t in tickets]
+    return out, module
+
+
+def test_module_scores_the_same_in_a_process_as_in_the_caller():
+    frames = frames_with_repeats(120, 3, seed=0)
+    dones = np.random.default_rng(1).random((120, 3)) < 0.08
+    sync, m_sync = run_module("sync", frames, dones, 0)
+    for mode, in_flight in (("process", 1), ("process", 4), ("thread", 4)):
+        other, m_other = run_module(mode, frames, dones, in_flight)
+        for (r1, n1), (r2, n2) in zip(sync, other):
+            assert np.array_equal(r1, r2) and np.array_equal(n1, n2), mode
+        assert np.array_equal(m_sync._goal_parts.numpy(), m_other._goal_parts.numpy())
+        assert m_sync.cache_hits == m_other.cache_hits > 0
+    r = np.concatenate([r for r, _ in sync])
+    assert len(np.unique(r)) > 5  # the rewards vary: a constant would match trivially
+    assert m_other.time_inference_background > 0 and m_other.cpu_inference_background > 0
+
+
+def test_phi_of_a_ticket_in_flight_is_taken_from_the_process():
+    """A state new to the embedding memo, seen again in the next ticket before the first is collected, is
+    embedded once (by the first ticket) and the second ticket's phi comes from it."""
+    module = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, scoring_process=True, seed=0)
+    module.pretrain()
+    frame = np.random.default_rng(5).integers(0, 256, (1, 16, 16, 3), dtype=np.uint8)
+    other = np.random.default_rng(6).integers(0, 256, (1, 16, 16, 3), dtype=np.uint8)
+    first = module.submit(np.concatenate([frame, other]), np.zeros(2, bool))
+    second = module.submit(np.concatenate([other, frame]), np.zeros(2, bool))  # each env sees the other's state
+    assert len(second.phi_from) == 2 and len(second.embed_rows) == 0
+    module.collect(second)
+    expected = module.embed(np.concatenate([frame, other])).numpy()
+    assert np.array_equal(first.phi, expected) and np.array_equal(second.phi, expected[::-1])
+    assert np.array_equal(second.rewards, module.score_states(np.concatenate([other, frame])))
+
+
+def test_ppo_gocu_with_a_scoring_process_matches_the_synchronous_run():
+    runs = []
+    for kwargs in (dict(async_scoring=False), dict(async_scoring=True, scoring_process=True)):
+        process = kwargs.pop("scoring_process", False)
+        th.manual_seed(0)
+        env = make_vec_env(lambda: ChainEnv(), n_envs=2, seed=0)
+        curiosity = {**SMALL_CURIOSITY, "predictor_train_freq": 128, "scoring_process": process}
+        model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=2, seed=0, curiosity_kwargs=curiosity, **kwargs)
+        model.learn(640)
+        runs.append(model)
+    a, b = runs
+    assert b.curiosity._process is not None and b.curiosity._scorer is None
+    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
+    assert a.rollout_buffer.intrinsic_rewards.any()
+    for (k, v), (k2, v2) in zip(a.policy.state_dict().items(), b.policy.state_dict().items()):
+        assert k == k2 and th.equal(v, v2), k
+    sa, sb = a.curiosity.state_dict(), b.curiosity.state_dict()
+    for net in ("vae", "predictor"):
+        assert all(th.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
+
+
+def test_a_dead_scoring_process_is_a_clear_error():
+    module = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, scoring_process=True, seed=0)
+    frames = frames_with_repeats(2, 2, seed=2)
+    module.collect(module.submit(frames[0], np.zeros(2, bool)))
+    module._process._proc.kill()
+    module._process._proc.wait()
+    with pytest.raises(RuntimeError, match="scoring process ended"):
+        module.collect(module.submit(frames_with_repeats(1, 2, seed=9)[0], np.zeros(2, bool)))
+
+
+def test_scoring_process_default_and_start():
+    """None picks a process for a CPU module on this (POSIX) machine; PPO_GoCu starts it at learn's start
+    (beside pretraining), and a thread-scoring module refuses to start one."""
+    assert GoalCuriosityModule(SPACE, **SMALL_CURIOSITY).scoring_process is True
+    env = make_vec_env(lambda: ChainEnv(), n_envs=2, seed=0)
+    model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=1, seed=0, curiosity_kwargs=SMALL_CURIOSITY)
+    assert model.curiosity._process is None
+    model.learn(64)
+    assert model.curiosity._process is not None and model.curiosity._process.bytes_sent > 0
+    thread = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, scoring_process=False)
+    with pytest.raises(ValueError, match="scores in a thread"):
+        thread.start_scoring_process()
+
+
+def test_scoring_process_rejects_bad_settings():
+    with pytest.raises(ValueError, match="scoring_process must be True, False or None"):
+        GoalCuriosityModule(SPACE, scoring_process="yes")
+    with pytest.raises(ValueError, match="scoring_process needs device='cpu'"):
+        GoalCuriosityModule(SPACE, scoring_process=True, device="meta")
+    with pytest.raises(ValueError, match="num_threads must be >= 1"):
+        ProcessScorer(None, num_threads=0)

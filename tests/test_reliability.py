@@ -533,11 +533,10 @@ def test_two_runs_with_one_seed_give_identical_updates_and_rewards():
     assert differences(parameters(a), parameters(c)), "another seed gives another run"
 
 
-@pytest.mark.parametrize("process", [True, False], ids=["fits_in_the_worker_process", "fits_in_a_thread"])
+@pytest.mark.parametrize("process", [True, False], ids=["scoring_process", "scoring_thread"])
 def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit(process):
-    """overlap_ppo_update (the default) runs the curiosity updates while PPO updates the policy, in the worker
-    process (``scoring_process``) or in a thread: the same policy, module and rewards as running them in
-    place, bit for bit."""
+    """overlap_ppo_update (the default) runs the curiosity updates in a thread while PPO updates the policy
+    (whichever worker scores): the same policy, module and rewards as running them in place, bit for bit."""
     runs, overlapped, jobs = [], [], []
     for overlap in (True, False):
         curiosity = dict(predictor_train_freq=128, vae_train_freq=256, overlap_ppo_update=overlap, scoring_process=process)
@@ -554,7 +553,7 @@ def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit(proc
         runs.append(model)
     a, b = runs
     assert overlapped[:8].count(True) == 4 and not any(overlapped[8:]), "updates ran beside PPO's with overlap only"
-    assert {j for j, o in zip(jobs, overlapped) if o} == {"_ProcessFuture" if process else "Thread"}
+    assert {j for j, o in zip(jobs, overlapped) if o} == {"Thread"}
     assert a.curiosity.stats["predictor_pairs"] > 0 and a.curiosity.time_vae > 0
     assert not differences(parameters(a), parameters(b))
     assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())

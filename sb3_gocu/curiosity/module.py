@@ -416,7 +416,7 @@ class GoalCuriosityModule:
         self._phi_cache: dict[bytes, th.Tensor] = {}
         self.train_in_background = train_in_background
         self.overlap_ppo_update = overlap_ppo_update
-        self._job: Any = None  # a running update: a thread, or a fit in the worker process (its future)
+        self._job: threading.Thread | None = None
         self._job_result: dict[str, Any] = {}
         self._job_until_next_use = False  # the running update is taken into use before the module is next used
         self._unreported: dict[str, float] = {}  # statistics of updates taken into use outside maybe_train
@@ -1072,30 +1072,10 @@ class GoalCuriosityModule:
                 out.update(self._run_job(name, job))
             return out
         self._job_until_next_use = not self.train_in_background
-        if self.scoring_process and not self.train_in_background:
-            # the worker process has nothing to score until the next rollout: the fits run there, beside PPO's
-            # update, without sharing its GIL (a background update would hold up the rollout's scoring there)
-            self._job = self.start_scoring_process().submit_fit(self._fit_shell(jobs), self._torch_gen.get_state(), jobs)
-            return out
         self._job_result = {"jobs": jobs, "fits": [], "error": None}
         self._job = threading.Thread(target=self._background, name="gocu-update", daemon=True)
         self._job.start()
         return out
-
-    #: what each fit reads and writes besides ``adapter``, ``device`` and ``_torch_gen``
-    _FIT_ATTRIBUTES = {
-        "vae": ("vae", "vae_optimizer", "vae_beta", "vae_patience", "vae_batch_size"),
-        "predictor": ("predictor", "predictor_optimizer", "predictor_batch_size", "predictor_epochs", "soft_labels",
-                      "prior_weight", "distance_weight", "label_threshold", "label_slope"),
-    }
-
-    def _fit_shell(self, jobs: list[tuple[str, dict[str, Any]]]) -> "GoalCuriosityModule":
-        """A module holding only what ``jobs``' fits read and write (``_FIT_ATTRIBUTES``): what the worker
-        process runs ``_fit_vae`` / ``_fit_predictor`` on, without the memories, stores and caches."""
-        shell = object.__new__(type(self))
-        names = ["adapter", "device"] + [a for name, _ in jobs for a in self._FIT_ATTRIBUTES[name]]
-        shell.__dict__.update({name: getattr(self, name) for name in names})
-        return shell
 
     def _run_job(self, name: str, job: dict[str, Any]) -> dict[str, float]:
         if name == "predictor":
@@ -1128,19 +1108,12 @@ class GoalCuriosityModule:
         if self._job is None:
             return {}
         t0 = time.perf_counter()
-        job, self._job = self._job, None
-        if isinstance(job, threading.Thread):
-            job.join()
-            result, self._job_result = self._job_result, {}
-        else:  # fits in the worker process: take their networks' new states
-            fits, states, torch_rng = job.result()
-            for name, state in states.items():
-                getattr(self, name).load_state_dict(state)
-            self._torch_gen.set_state(torch_rng)
-            result = {"fits": fits, "error": None}
+        self._job.join()
         if self._job_until_next_use:
             self.time_update_wait += time.perf_counter() - t0
+        self._job = None
         self._job_until_next_use = False
+        result, self._job_result = self._job_result, {}
         if result["error"] is not None:
             raise RuntimeError("a background curiosity update failed") from result["error"]
         out: dict[str, float] = {}

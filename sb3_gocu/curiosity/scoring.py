@@ -84,8 +84,7 @@ def score_rows(
 
 
 class _ProcessFuture:
-    """What :meth:`ProcessScorer.submit` and :meth:`ProcessScorer.submit_fit` return: ``result()`` waits for
-    the process's answer (a ticket's rewards; a fit's statistics and the networks' new states)."""
+    """What :meth:`ProcessScorer.submit` returns: ``result()`` waits for the process's answer (the rewards)."""
 
     def __init__(self, scorer: "ProcessScorer", ticket: Any, tid: int) -> None:
         self._scorer, self.ticket, self.tid = scorer, ticket, tid
@@ -102,8 +101,7 @@ class _ProcessFuture:
 
 
 class ProcessScorer:
-    """Scores :class:`~sb3_gocu.curiosity.module.ScoringTicket` s in a child process, in submission order, and
-    runs the VAE's and the predictor's fits there too (:meth:`submit_fit`), between two rollouts.
+    """Scores :class:`~sb3_gocu.curiosity.module.ScoringTicket` s in a child process, in submission order.
 
     The child is started with ``python -c`` (not ``multiprocessing``: the caller's script, guarded by
     ``if __name__ == "__main__"`` or not, is not run again) and talks over two pipes. It exits when the pipes close
@@ -202,30 +200,6 @@ class ProcessScorer:
         self._in_flight.append(future)
         return future
 
-    def submit_fit(self, shell: Any, torch_rng: th.Tensor, jobs: list[tuple[str, dict[str, Any]]]) -> _ProcessFuture:
-        """Send fits to the child: ``jobs`` (``("predictor" | "vae", keywords of the module's ``_fit_*``)``), run
-        in order on ``shell`` (a module holding only what the fits read: the networks, their optimisers and the
-        settings) with a torch generator in state ``torch_rng``. The future's result is ``(fits, states,
-        torch_rng)``: each job's statistics, the new ``state_dict`` of each network and optimiser the jobs
-        trained, and the generator's state after them. The child runs the same operations on copies of the
-        same objects with the caller's torch thread count, so the new states are the same to the bit as fitting
-        in the caller (``tests/test_scoring_process.py``)."""
-        if self._proc.poll() is not None:
-            raise self._ended()
-        tid = self._next_tid
-        self._next_tid += 1
-        message = {"fit": jobs, "tid": tid, "shell": shell, "torch_rng": torch_rng,
-                   "keep_from": self._in_flight[0].tid if self._in_flight else tid}
-        payload = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-        self.bytes_sent += len(payload)
-        try:
-            self._send.send_bytes(payload)
-        except OSError as error:
-            raise self._ended() from error
-        future = _ProcessFuture(self, None, tid)
-        self._in_flight.append(future)
-        return future
-
     def _ended(self) -> RuntimeError:
         return RuntimeError(
             f"the GoCu scoring process ended (exit code {self._proc.poll()}; its error output, if any, is above): "
@@ -246,14 +220,11 @@ class ProcessScorer:
         if tid != future.tid:
             raise RuntimeError(f"the GoCu scoring process answered ticket {tid}, expected {future.tid}")
         self._in_flight.pop(0)
-        if answer[0] == "fit":
-            future._result = answer[2:]
-        else:
-            _, _, phi, rewards, wall, cpu = answer
-            ticket = future.ticket
-            ticket.phi[ticket.miss] = phi
-            ticket.compute_time, ticket.compute_cpu_time = wall, cpu
-            future._result = rewards
+        _, _, phi, rewards, wall, cpu = answer
+        ticket = future.ticket
+        ticket.phi[ticket.miss] = phi
+        ticket.compute_time, ticket.compute_cpu_time = wall, cpu
+        future._result = rewards
         future._done = True
 
 
@@ -276,9 +247,6 @@ def _serve(read_fd: int, write_fd: int, num_threads: int) -> None:
                 continue
             for tid in [t for t in phis if t < message["keep_from"]]:
                 del phis[tid]
-            if "fit" in message:
-                send.send_bytes(pickle.dumps(("fit", message["tid"], *_fit(message)), protocol=pickle.HIGHEST_PROTOCOL))
-                continue
             t0, c0 = time.perf_counter(), time.thread_time()
             encoder = message.get("encoder", encoder)
             folded = message.get("folded", folded)
@@ -297,18 +265,3 @@ def _serve(read_fd: int, write_fd: int, num_threads: int) -> None:
             answer = ("error", traceback.format_exc())
         send.send_bytes(pickle.dumps(answer, protocol=pickle.HIGHEST_PROTOCOL))
 
-
-def _fit(message: dict[str, Any]) -> tuple[list, dict[str, dict], th.Tensor]:
-    """Run a :meth:`ProcessScorer.submit_fit` message's fits on its shell: (statistics, new states, generator state)."""
-    shell = message["shell"]
-    shell._torch_gen = th.Generator()
-    shell._torch_gen.set_state(message["torch_rng"])
-    fits, states = [], {}
-    for name, job in message["fit"]:
-        if name == "predictor":
-            fits.append((name, shell._fit_predictor(**job)))
-            states.update(predictor=shell.predictor.state_dict(), predictor_optimizer=shell.predictor_optimizer.state_dict())
-        else:
-            fits.append((name, shell._fit_vae(**job)))
-            states.update(vae=shell.vae.state_dict(), vae_optimizer=shell.vae_optimizer.state_dict())
-    return fits, states, shell._torch_gen.get_state()

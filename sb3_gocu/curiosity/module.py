@@ -515,7 +515,8 @@ class GoalCuriosityModule:
             self._pending[e].clear()
             self._episode_ids[e] = self._next_episode_id
             self._next_episode_id += 1
-        self.sample_goals(env_indices)
+        if len(env_indices):
+            self.sample_goals(env_indices)
 
     def register_env(self) -> int:
         """Add one env (for per-env wrappers sharing this module) and return its index."""
@@ -605,7 +606,7 @@ class GoalCuriosityModule:
             envs = th.from_numpy(env_indices[m_idx])
             ticket.has_goals = self._has_goals[env_indices[m_idx]]
             ticket.goal_versions = self._goal_version[env_indices[m_idx]]
-            ticket.goal_parts = self._goal_parts[envs].clone()  # the episode's goals: a new episode may start before scoring
+            ticket.goal_parts = self._goal_parts[envs]  # a copy (indexing), the episode's goals: a new episode may start before scoring
             ticket.folded = self._folded
             for j in miss:
                 self._pending[env_indices[j]][keys[j]] = (ticket, j)

@@ -131,3 +131,13 @@ def test_scoring_process_rejects_bad_settings():
         GoalCuriosityModule(SPACE, scoring_process=True, device="meta")
     with pytest.raises(ValueError, match="num_threads must be >= 1"):
         ProcessScorer(None, num_threads=0)
+
+
+def test_a_failure_in_the_scoring_process_is_raised_with_its_traceback():
+    """The worker catches the error and sends its traceback; the training process raises it at collect."""
+    module = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, scoring_process=True, seed=0)
+    small = GoalCuriosityModule(spaces.Box(0, 255, (8, 8, 3), np.uint8), **SMALL_CURIOSITY, seed=0)
+    module._encoder = small._encoder  # built for 8x8 frames: its fully connected layer refuses 16x16 ones
+    ticket = module.submit(frames_with_repeats(1, 2, seed=4)[0], np.zeros(2, bool))
+    with pytest.raises(RuntimeError, match=r"scoring process failed:\n(.|\n)*Traceback(.|\n)*mat1 and mat2"):
+        module.collect(ticket)

@@ -234,9 +234,10 @@ class GoalCuriosityModule:
         PPO_GoCu's ``async_scoring``): the process has its own GIL, so the scoring no longer waits for the env
         stepping's, and the env stepping no longer waits for the scoring's. The values are the same to the bit
         (the process runs the same operations with as many torch threads as the caller had); it costs a
-        process (0.3 GB resident, measured) and its start (about 2.5 s, once, overlapping pretraining when
-        PPO_GoCu starts it). Measured on DoorKey-8x8 (README, Results): PPO_GoCu's time per step 1.53x plain
-        PPO's against 1.66x with the worker thread (same run, 1 torch thread). ``None`` (default): a process
+        process (about 0.35 GB resident, measured during a DoorKey-8x8 run) and its start (a few seconds, once, overlapping pretraining when
+        PPO_GoCu starts it). Measured on DoorKey-8x8 over 100k steps (README, Results, "Throughput"): the
+        rollouts waited 2.8 s for the scores against 14.2 s with the worker thread, and PPO_GoCu's time per
+        step was 1.30x plain PPO's against 1.39x (same run, 1 torch thread). ``None`` (default): a process
         on a POSIX system with a CPU device, else a thread. See :class:`~sb3_gocu.curiosity.scoring.ProcessScorer`
     :param device: torch device of the networks
     :param seed: seed of the module's random generators

@@ -480,9 +480,19 @@ class GoalCuriosityModule:
         envs = th.from_numpy(env_indices)
         return self._eq13(self.embed(raw), self._goal_parts[envs], self._has_goals[env_indices], self._folded).numpy()
 
+    @property
+    def _eq13_args(self) -> tuple[float, str, float]:
+        """The settings of eq 13 after phi, goals and predictor: (alpha, aggregation h, reward_scale delta)."""
+        return self.alpha, self.aggregation, self.reward_scale
+
+    @property
+    def _to_tensor(self) -> Callable[[np.ndarray], th.Tensor]:
+        """Raw batch -> the encoder's input on the module's device (picklable, for the scoring process)."""
+        return functools.partial(self.adapter.to_tensor, device=self.device)
+
     def _eq13(self, phi: th.Tensor, goal_parts: th.Tensor, has_goals: np.ndarray, folded: FoldedPredictor) -> th.Tensor:
         """Raw r_gc of states (phi) against their episodes' goals: :func:`~sb3_gocu.curiosity.scoring.eq13_rows`."""
-        return eq13_rows(phi, goal_parts, has_goals, folded, self.alpha, self.aggregation, self.reward_scale)
+        return eq13_rows(phi, goal_parts, has_goals, folded, *self._eq13_args)
 
     def ensure_envs(self, n_envs: int) -> None:
         """Grow the per-env state to ``n_envs`` environments (new envs get goals at once)."""
@@ -622,9 +632,7 @@ class GoalCuriosityModule:
             ticket.phi[j] = earlier.phi[row]
         phi = ticket.phi[ticket.miss]
         embed_pos = np.searchsorted(ticket.miss, ticket.embed_rows)
-        to_tensor = functools.partial(self.adapter.to_tensor, device=self.device)
-        eq13_args = (self.alpha, self.aggregation, self.reward_scale)
-        r = score_rows(phi, embed_pos, ticket.raw, ticket.encoder, to_tensor, ticket.goal_parts, ticket.has_goals, ticket.folded, eq13_args)
+        r = score_rows(phi, embed_pos, ticket.raw, ticket.encoder, self._to_tensor, ticket.goal_parts, ticket.has_goals, ticket.folded, self._eq13_args)
         ticket.phi[ticket.miss] = phi
         ticket.compute_time = time.perf_counter() - t0
         ticket.compute_cpu_time = time.thread_time() - c0
@@ -704,7 +712,7 @@ class GoalCuriosityModule:
             self.n_recorded_steps += n
         if len(ticket.miss):
             if background and self.scoring_process:
-                ticket.future = self.start_scoring_process().submit(ticket, (self.alpha, self.aggregation, self.reward_scale))
+                ticket.future = self.start_scoring_process().submit(ticket, self._eq13_args)
             elif background:
                 if self._scorer is None:
                     self._scorer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gocu-score")
@@ -725,7 +733,7 @@ class GoalCuriosityModule:
         if not self.scoring_process:
             raise ValueError("start_scoring_process: this module scores in a thread (scoring_process=False)")
         if self._process is None:
-            self._process = ProcessScorer(functools.partial(self.adapter.to_tensor, device=self.device))
+            self._process = ProcessScorer(self._to_tensor)
         return self._process
 
     def collect(self, ticket: "ScoringTicket") -> tuple[np.ndarray, np.ndarray]:

@@ -1,5 +1,7 @@
 """PPO_GoCu save/load round trips, and the drop-in path with plain SB3 algorithms."""
 
+import threading
+
 import numpy as np
 import pytest
 import torch as th
@@ -116,11 +118,11 @@ def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():
         PPO_GoCu("MlpPolicy", GoCuVecEnvWrapper(chain_venv(), mode="sum", curiosity_kwargs=SMALL_CURIOSITY))
 
 
-def in_place_and_variant_after_steps(**variant: bool) -> tuple[GoalCuriosityModule, GoalCuriosityModule]:
-    """Two modules with one seed, updates in place and with ``variant`` settings, after the same 160 recorded
-    steps of 2 envs (a predictor and a VAE update due)."""
+def in_place_and_variant_after_steps(shared: dict | None = None, **variant: bool) -> tuple[GoalCuriosityModule, GoalCuriosityModule]:
+    """Two modules with one seed, updates in place and with ``variant`` settings (both with ``shared``), after
+    the same 160 recorded steps of 2 envs (a predictor and a VAE update due)."""
     space = ChainEnv().observation_space
-    settings = {**SMALL_CURIOSITY, "vae_train_freq": 256}
+    settings = {**SMALL_CURIOSITY, "vae_train_freq": 256, **(shared or {})}
     modules = GoalCuriosityModule(space, **settings, seed=5), GoalCuriosityModule(space, **{**settings, **variant}, seed=5)
     rng = np.random.default_rng(0)
     batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(160)]
@@ -132,7 +134,9 @@ def in_place_and_variant_after_steps(**variant: bool) -> tuple[GoalCuriosityModu
 
 
 def test_background_updates_train_the_same_networks_one_rollout_later():
-    sync, background = in_place_and_variant_after_steps(train_in_background=True)
+    """At the same update_threads (by default a background update keeps the caller's count, an update in
+    place doubles it), the background update trains the networks of the in-place one, bit for bit."""
+    sync, background = in_place_and_variant_after_steps(shared={"update_threads": 1}, train_in_background=True)
     assert not GoalCuriosityModule(ChainEnv().observation_space).train_in_background, "off by default"
     out_sync = sync.maybe_train()
     assert "predictor_loss" in out_sync and "vae_loss" in out_sync
@@ -171,3 +175,48 @@ def test_an_update_overlapping_ppos_is_taken_into_use_before_the_next_step():
     out_next = overlap.maybe_train()
     assert out_next["predictor_loss"] == out_in_place["predictor_loss"] and out_next["vae_loss"] == out_in_place["vae_loss"]
     assert "predictor_loss" not in overlap.maybe_train(), "reported once"
+
+
+def threads_seen_by_the_fits(module: GoalCuriosityModule, monkeypatch) -> list[tuple[str, int, int]]:
+    """Record (network, torch threads, thread id) at every minibatch step of the module's VAE and predictor fits."""
+    seen: list[tuple[str, int, int]] = []
+    grads_finite = module._grads_finite
+
+    def spy(network):
+        seen.append(("vae" if network is module.vae else "predictor", th.get_num_threads(), threading.get_ident()))
+        return grads_finite(network)
+
+    monkeypatch.setattr(module, "_grads_finite", spy)
+    return seen
+
+
+@pytest.mark.parametrize("variant, caller, cores, expected", [
+    (dict(), 1, 4, 2),  # in place: the caller's threads and the scoring worker's, both idle
+    (dict(), 2, 3, 3),  # ... at most the cores
+    (dict(), 3, 2, 3),  # ... and never fewer than the caller's
+    (dict(overlap_ppo_update=True), 1, 4, 2),  # overlapped with PPO's update, then waited for
+    (dict(train_in_background=True), 1, 4, 1),  # beside the rollout: the caller's count
+    (dict(overlap_ppo_update=True, update_threads=3), 1, 4, 3),
+])
+def test_updates_run_with_their_thread_count_and_leave_the_callers_alone(variant, caller, cores, expected, monkeypatch):
+    """update_threads: every minibatch of both fits runs with the stated count, in a worker thread when the
+    update overlaps, and the caller's count is the same after the update as before."""
+    monkeypatch.setattr("sb3_gocu.curiosity.module.available_cores", lambda: cores)
+    th.set_num_threads(caller)
+    _, module = in_place_and_variant_after_steps(**variant)
+    seen = threads_seen_by_the_fits(module, monkeypatch)
+    main = threading.get_ident()
+    module.maybe_train()
+    assert th.get_num_threads() == caller
+    module.finish_background_update()
+    assert th.get_num_threads() == caller, "the caller's count is restored"
+    assert {name for name, _, _ in seen} == {"vae", "predictor"}
+    assert {n for _, n, _ in seen} == {expected}
+    in_worker = variant.get("overlap_ppo_update") or variant.get("train_in_background")
+    assert {ident == main for _, _, ident in seen} == {not in_worker}
+
+
+@pytest.mark.parametrize("value", [0, -1, 1.5, True, "2"])
+def test_update_threads_is_checked(value):
+    with pytest.raises(ValueError, match=rf"update_threads must be None or an int >= 1, got {value!r}"):
+        GoalCuriosityModule(ChainEnv().observation_space, **SMALL_CURIOSITY, update_threads=value)

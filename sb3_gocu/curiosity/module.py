@@ -22,6 +22,7 @@ while the caller steps the envs. None of this changes the value computed.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import hashlib
@@ -90,6 +91,27 @@ def _counts_to_state(counts: dict[bytes, int]) -> dict[str, th.Tensor]:
 def _counts_from_state(state: dict[str, th.Tensor]) -> dict[bytes, int]:
     """Inverse of :func:`_counts_to_state`."""
     return {bytes(k): int(n) for k, n in zip(state["keys"].numpy(), state["counts"].tolist())}
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the system reports it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None):
+    """Run the block with ``n`` torch threads in the calling thread (None: leave the count alone), then restore
+    the count it had. Torch keeps the count per thread once a thread has used it, so a worker thread can
+    change its own count while the training thread keeps its count."""
+    before = th.get_num_threads()
+    if n is None or n == before:
+        yield
+        return
+    th.set_num_threads(n)
+    try:
+        yield
+    finally:
+        th.set_num_threads(before)
 
 
 class EarlyStopping:
@@ -230,6 +252,13 @@ class GoalCuriosityModule:
         out of the next :meth:`maybe_train` (logged one rollout later). Measured on DoorKey-8x8 (README,
         Results): the rollouts waited 23.9 s for the updates per 100k steps, against 34.9 s in place (same run,
         1 torch thread). False: run the update in place
+    :param update_threads: torch threads of a VAE or predictor update (pretraining's included). ``None``
+        (default): twice the caller's ``torch.get_num_threads()``, at most :func:`available_cores`, because an
+        update that blocks training (in place, or overlapped with PPO's update and then waited for) leaves both
+        the caller's share and the scoring worker's idle; with ``train_in_background``, the caller's count (the
+        update runs beside the rollout). The count changes the low bits of some matrix products (torch splits
+        their sums by thread), so a seed repeats a run bit for bit at the same count. Measured on DoorKey-8x8
+        (README, Results, "Throughput"); 1 thread gives the updates of the earlier releases
     :param scoring_process: score in a worker process rather than a worker thread (``submit(..., background=True)``,
         PPO_GoCu's ``async_scoring``): the process has its own GIL, so the scoring no longer waits for the env
         stepping's, and the env stepping no longer waits for the scoring's. The values are the same to the bit
@@ -288,6 +317,7 @@ class GoalCuriosityModule:
         train_in_background: bool = False,
         overlap_ppo_update: bool = True,
         scoring_process: bool | None = None,
+        update_threads: int | None = None,
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
@@ -339,6 +369,11 @@ class GoalCuriosityModule:
         _check(
             isinstance(vae_holdout, (int, float, np.floating)) and not isinstance(vae_holdout, bool) and 0 < vae_holdout <= 0.5,
             f"vae_holdout must be in (0, 0.5], got {vae_holdout!r}",
+        )
+
+        _check(
+            update_threads is None or (isinstance(update_threads, (int, np.integer)) and not isinstance(update_threads, bool) and update_threads >= 1),
+            f"update_threads must be None or an int >= 1, got {update_threads!r}",
         )
 
         self.observation_space = observation_space
@@ -417,6 +452,7 @@ class GoalCuriosityModule:
         self._phi_cache: dict[bytes, th.Tensor] = {}
         self.train_in_background = train_in_background
         self.overlap_ppo_update = overlap_ppo_update
+        self.update_threads = None if update_threads is None else int(update_threads)
         self._job: threading.Thread | None = None
         self._job_result: dict[str, Any] = {}
         self._job_until_next_use = False  # the running update is taken into use before the module is next used
@@ -802,7 +838,14 @@ class GoalCuriosityModule:
         self._encoder = copy.deepcopy(self.vae).eval().requires_grad_(False)
 
     # VAE update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
-    def _prepare_vae(self, epochs: int | None) -> dict[str, Any] | None:
+    def _update_thread_count(self, beside_rollout: bool) -> int:
+        """Torch threads of an update prepared now (call it in the caller's thread; see ``update_threads``)."""
+        if self.update_threads is not None:
+            return self.update_threads
+        caller = th.get_num_threads()
+        return caller if beside_rollout else max(caller, min(available_cores(), 2 * caller))
+
+    def _prepare_vae(self, epochs: int | None, beside_rollout: bool = False) -> dict[str, Any] | None:
         epochs = self.vae_epochs if epochs is None else epochs
         data = self.memory.observations[: self.memory.size].copy()
         if len(data) == 0 or epochs == 0:
@@ -820,7 +863,7 @@ class GoalCuriosityModule:
             c = np.fromiter((counts[k] for k in first), dtype=np.float64, count=len(first))
             weights = (c * len(c) / c.sum()).astype(np.float32)
         self.last_vae_update = self.n_recorded_steps
-        job: dict[str, Any] = {"data": data, "weights": weights, "epochs": epochs}
+        job: dict[str, Any] = {"data": data, "weights": weights, "epochs": epochs, "threads": self._update_thread_count(beside_rollout)}
         n_val = int(round(self.vae_holdout * len(data)))
         if self.vae_patience > 0 and n_val >= 1:
             order = self.rng.permutation(len(data))
@@ -849,54 +892,57 @@ class GoalCuriosityModule:
         val_data: np.ndarray | None = None,
         val_weights: np.ndarray | None = None,
         on_epoch: Callable[[int], None] | None = None,
+        threads: int | None = None,
     ) -> dict[str, Any]:
         """Fit the VAE (eq 8) to ``data`` (weighted by multiplicity) for at most ``epochs`` epochs.
 
         :param val_data: held-out observations for early stopping (``vae_patience``); None: all ``epochs`` epochs
         :param val_weights: their multiplicities
         :param on_epoch: called with the epoch number after each epoch (the VAE is in train mode), for probes
+        :param threads: torch threads of the fit (None: the calling thread's)
         """
-        t0 = time.perf_counter()
-        snapshot = self._snapshot(self.vae, self.vae_optimizer)
-        early = val_data is not None and val_weights is not None and self.vae_patience > 0
-        start_loss = self._vae_val_loss(val_data, val_weights) if early else float("nan")
-        stopping, best_state = EarlyStopping(start_loss, self.vae_patience), None
-        self.vae.train()
-        losses, skipped = [], 0
-        n = len(data)
-        epoch = -1
-        for epoch in range(epochs):
-            order = th.randperm(n, generator=self._torch_gen).numpy()
-            for start in range(0, n, self.vae_batch_size):
-                idx = order[start : start + self.vae_batch_size]
-                x = self.adapter.to_tensor(data[idx], self.device)
-                w = th.from_numpy(weights[idx]).to(self.device)
-                loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
-                if not th.isfinite(loss):
-                    skipped += 1
-                    continue
-                self.vae_optimizer.zero_grad()
-                loss.backward()
-                if not self._grads_finite(self.vae):
-                    skipped += 1
-                    continue
-                self.vae_optimizer.step()
-                losses.append(loss.item())
-            if on_epoch is not None:
-                on_epoch(epoch)
-            if early:
-                if stopping.update(epoch + 1, self._vae_val_loss(val_data, val_weights)):
-                    best_state = copy.deepcopy(self.vae.state_dict())
-                elif stopping.stop:
-                    break
-        epochs_run = epoch + 1
-        if early and stopping.best_epoch < epochs_run:  # keep the best epoch's weights (the starting ones if none beat them)
-            self.vae.load_state_dict(best_state if best_state is not None else snapshot[0])
-        self.vae.eval()
-        return {"snapshot": snapshot, "losses": losses, "skipped": skipped, "n": n + (0 if val_data is None else len(val_data)),
-                "time": time.perf_counter() - t0, "epochs_run": epochs_run,
-                "best_epoch": stopping.best_epoch if early else epochs_run, "val_loss_start": start_loss,
-                "val_loss": stopping.best_loss}
+        with torch_threads(threads):
+            t0 = time.perf_counter()
+            snapshot = self._snapshot(self.vae, self.vae_optimizer)
+            early = val_data is not None and val_weights is not None and self.vae_patience > 0
+            start_loss = self._vae_val_loss(val_data, val_weights) if early else float("nan")
+            stopping, best_state = EarlyStopping(start_loss, self.vae_patience), None
+            self.vae.train()
+            losses, skipped = [], 0
+            n = len(data)
+            epoch = -1
+            for epoch in range(epochs):
+                order = th.randperm(n, generator=self._torch_gen).numpy()
+                for start in range(0, n, self.vae_batch_size):
+                    idx = order[start : start + self.vae_batch_size]
+                    x = self.adapter.to_tensor(data[idx], self.device)
+                    w = th.from_numpy(weights[idx]).to(self.device)
+                    loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
+                    if not th.isfinite(loss):
+                        skipped += 1
+                        continue
+                    self.vae_optimizer.zero_grad()
+                    loss.backward()
+                    if not self._grads_finite(self.vae):
+                        skipped += 1
+                        continue
+                    self.vae_optimizer.step()
+                    losses.append(loss.item())
+                if on_epoch is not None:
+                    on_epoch(epoch)
+                if early:
+                    if stopping.update(epoch + 1, self._vae_val_loss(val_data, val_weights)):
+                        best_state = copy.deepcopy(self.vae.state_dict())
+                    elif stopping.stop:
+                        break
+            epochs_run = epoch + 1
+            if early and stopping.best_epoch < epochs_run:  # keep the best epoch's weights (the starting ones if none beat them)
+                self.vae.load_state_dict(best_state if best_state is not None else snapshot[0])
+            self.vae.eval()
+            return {"snapshot": snapshot, "losses": losses, "skipped": skipped, "n": n + (0 if val_data is None else len(val_data)),
+                    "time": time.perf_counter() - t0, "epochs_run": epochs_run,
+                    "best_epoch": stopping.best_epoch if early else epochs_run, "val_loss_start": start_loss,
+                    "val_loss": stopping.best_loss}
 
     def _finish_vae(self, fit: dict[str, Any]) -> dict[str, float]:
         self.collect_all()
@@ -942,7 +988,7 @@ class GoalCuriosityModule:
         return out
 
     # predictor update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
-    def _prepare_predictor(self) -> dict[str, Any] | None:
+    def _prepare_predictor(self, beside_rollout: bool = False) -> dict[str, Any] | None:
         self.collect_all()  # the trajectory store takes a state's phi when its ticket is collected
         phi_s, phi_g, dist = self.trajectories.sample_pairs(
             self.predictor_pairs, self.max_distance, self.rng, first_visit=self.first_visit_distance
@@ -963,7 +1009,7 @@ class GoalCuriosityModule:
             phi_s, phi_g, dist = phi_s[first], phi_g[first], dist[first]
             weights = th.from_numpy(counts * (len(counts) / counts.sum())).float()  # mean 1 over the distinct pairs
         return {"phi_s": phi_s.to(self.device), "phi_g": phi_g.to(self.device), "dist": dist.to(self.device),
-                "weights": weights.to(self.device), "drawn": drawn}
+                "weights": weights.to(self.device), "drawn": drawn, "threads": self._update_thread_count(beside_rollout)}
 
     @th.no_grad()
     def label_pairs(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor) -> th.Tensor:
@@ -980,47 +1026,50 @@ class GoalCuriosityModule:
         weights: th.Tensor | None = None,
         drawn: int | None = None,
         on_epoch: Callable[[int], None] | None = None,
+        threads: int | None = None,
     ) -> dict[str, Any]:
         """Label the pairs (eq 15-16) and fit the predictor to them for ``predictor_epochs`` epochs.
 
         :param weights: multiplicity of each pair, mean 1 (the loss of a minibatch is the mean of weight x cross-entropy)
         :param drawn: pairs drawn before de-duplication (for the statistics)
         :param on_epoch: called with the epoch number after each epoch (the predictor is in train mode), for probes
+        :param threads: torch threads of the fit (None: the calling thread's)
         """
-        t0 = time.perf_counter()
-        p_skill = self.label_pairs(phi_s, phi_g, dist)
-        target = p_skill if self.soft_labels else th.bernoulli(p_skill.nan_to_num(0.5), generator=self._torch_gen)
-        snapshot = self._snapshot(self.predictor, self.predictor_optimizer)
-        self.predictor.train()
-        n = len(phi_s)
-        weights = th.ones(n, device=phi_s.device) if weights is None else weights
-        losses, accs, skipped = [], [], 0
-        for epoch in range(self.predictor_epochs):
-            order = th.randperm(n, generator=self._torch_gen)
-            for start in range(0, n, self.predictor_batch_size):
-                idx = order[start : start + self.predictor_batch_size]
-                if len(idx) < 2:  # batch norm needs two samples
-                    continue
-                logp = th.log_softmax(self.predictor(phi_s[idx], phi_g[idx]), dim=-1)
-                t, w = target[idx], weights[idx]
-                loss = -(w * (t * logp[:, 1] + (1 - t) * logp[:, 0])).mean()
-                if not th.isfinite(loss):
-                    skipped += 1
-                    continue
-                self.predictor_optimizer.zero_grad()
-                loss.backward()
-                if not self._grads_finite(self.predictor):
-                    skipped += 1
-                    continue
-                self.predictor_optimizer.step()
-                losses.append(loss.item())
-                accs.append(float((w * ((logp[:, 1] > logp[:, 0]) == (t > 0.5)).float()).sum() / w.sum()))
-            if on_epoch is not None:
-                on_epoch(epoch)
-        self.predictor.eval()
-        return {"snapshot": snapshot, "losses": losses, "accs": accs, "skipped": skipped, "n": n,
-                "drawn": n if drawn is None else drawn,
-                "mastered": float((weights * (p_skill > 0.5).float()).sum() / weights.sum()), "time": time.perf_counter() - t0}
+        with torch_threads(threads):
+            t0 = time.perf_counter()
+            p_skill = self.label_pairs(phi_s, phi_g, dist)
+            target = p_skill if self.soft_labels else th.bernoulli(p_skill.nan_to_num(0.5), generator=self._torch_gen)
+            snapshot = self._snapshot(self.predictor, self.predictor_optimizer)
+            self.predictor.train()
+            n = len(phi_s)
+            weights = th.ones(n, device=phi_s.device) if weights is None else weights
+            losses, accs, skipped = [], [], 0
+            for epoch in range(self.predictor_epochs):
+                order = th.randperm(n, generator=self._torch_gen)
+                for start in range(0, n, self.predictor_batch_size):
+                    idx = order[start : start + self.predictor_batch_size]
+                    if len(idx) < 2:  # batch norm needs two samples
+                        continue
+                    logp = th.log_softmax(self.predictor(phi_s[idx], phi_g[idx]), dim=-1)
+                    t, w = target[idx], weights[idx]
+                    loss = -(w * (t * logp[:, 1] + (1 - t) * logp[:, 0])).mean()
+                    if not th.isfinite(loss):
+                        skipped += 1
+                        continue
+                    self.predictor_optimizer.zero_grad()
+                    loss.backward()
+                    if not self._grads_finite(self.predictor):
+                        skipped += 1
+                        continue
+                    self.predictor_optimizer.step()
+                    losses.append(loss.item())
+                    accs.append(float((w * ((logp[:, 1] > logp[:, 0]) == (t > 0.5)).float()).sum() / w.sum()))
+                if on_epoch is not None:
+                    on_epoch(epoch)
+            self.predictor.eval()
+            return {"snapshot": snapshot, "losses": losses, "accs": accs, "skipped": skipped, "n": n,
+                    "drawn": n if drawn is None else drawn,
+                    "mastered": float((weights * (p_skill > 0.5).float()).sum() / weights.sum()), "time": time.perf_counter() - t0}
 
     def _finish_predictor(self, fit: dict[str, Any]) -> dict[str, float]:
         self.collect_all()  # scores in flight belong to the old predictor
@@ -1068,11 +1117,11 @@ class GoalCuriosityModule:
         # predictor first: a VAE update makes the stored embeddings (the predictor's pairs) stale
         jobs: list[tuple[str, dict[str, Any]]] = []
         if self.n_recorded_steps - self.last_predictor_update >= self.predictor_train_freq:
-            job = self._prepare_predictor()
+            job = self._prepare_predictor(beside_rollout=self.train_in_background)
             if job is not None:
                 jobs.append(("predictor", job))
         if self.n_recorded_steps - self.last_vae_update >= self.vae_train_freq:
-            job = self._prepare_vae(None)
+            job = self._prepare_vae(None, beside_rollout=self.train_in_background)
             if job is not None:
                 jobs.append(("vae", job))
         if not jobs:

@@ -839,7 +839,6 @@ class GoalCuriosityModule:
         """Inference embeds with a frozen copy of the VAE, so the VAE itself can train while steps go on."""
         self._encoder = copy.deepcopy(self.vae).eval().requires_grad_(False)
 
-    # VAE update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
     def _update_thread_count(self, beside_rollout: bool) -> int:
         """Torch threads of an update prepared now (call it in the caller's thread; see ``update_threads``)."""
         caller = th.get_num_threads()  # also fixes the caller's count before an update thread changes torch's default
@@ -847,6 +846,7 @@ class GoalCuriosityModule:
             return self.update_threads
         return caller if beside_rollout else max(caller, min(available_cores(), 2 * caller))
 
+    # VAE update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
     def _prepare_vae(self, epochs: int | None, beside_rollout: bool = False) -> dict[str, Any] | None:
         epochs = self.vae_epochs if epochs is None else epochs
         data = self.memory.observations[: self.memory.size].copy()

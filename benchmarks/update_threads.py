@@ -2,8 +2,8 @@
 
     python benchmarks/update_threads.py --steps 40 --repeats 2
 
-``update_threads`` (GoalCuriosityModule) runs the VAE and predictor updates that training waits for with twice
-the caller's torch threads. This script times what that buys per step on this machine, outside a training run:
+``update_threads`` (GoalCuriosityModule, opt-in) runs the VAE and predictor updates with more torch threads than
+the caller's. This script times what a second thread buys per step on this machine, outside a training run:
 a VAE step (eq 8, Adam) on ``--vae-batch`` 32x32 RGB images and a predictor step (the 5x512 MLP, Adam) on
 ``--predictor-batch`` pairs of 128-d embeddings, each in a fresh Python thread (as the module's update thread)
 with 1 and with 2 torch threads while the main thread keeps 1, ``--repeats`` times alternately, after 3 warm-up

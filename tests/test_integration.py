@@ -118,11 +118,11 @@ def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():
         PPO_GoCu("MlpPolicy", GoCuVecEnvWrapper(chain_venv(), mode="sum", curiosity_kwargs=SMALL_CURIOSITY))
 
 
-def in_place_and_variant_after_steps(shared: dict | None = None, **variant: bool) -> tuple[GoalCuriosityModule, GoalCuriosityModule]:
-    """Two modules with one seed, updates in place and with ``variant`` settings (both with ``shared``), after
-    the same 160 recorded steps of 2 envs (a predictor and a VAE update due)."""
+def in_place_and_variant_after_steps(**variant: bool) -> tuple[GoalCuriosityModule, GoalCuriosityModule]:
+    """Two modules with one seed, updates in place and with ``variant`` settings, after the same 160 recorded
+    steps of 2 envs (a predictor and a VAE update due)."""
     space = ChainEnv().observation_space
-    settings = {**SMALL_CURIOSITY, "vae_train_freq": 256, **(shared or {})}
+    settings = {**SMALL_CURIOSITY, "vae_train_freq": 256}
     modules = GoalCuriosityModule(space, **settings, seed=5), GoalCuriosityModule(space, **{**settings, **variant}, seed=5)
     rng = np.random.default_rng(0)
     batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(160)]
@@ -134,9 +134,7 @@ def in_place_and_variant_after_steps(shared: dict | None = None, **variant: bool
 
 
 def test_background_updates_train_the_same_networks_one_rollout_later():
-    """At the same update_threads (by default a background update keeps the caller's count, an update in
-    place doubles it), the background update trains the networks of the in-place one, bit for bit."""
-    sync, background = in_place_and_variant_after_steps(shared={"update_threads": 1}, train_in_background=True)
+    sync, background = in_place_and_variant_after_steps(train_in_background=True)
     assert not GoalCuriosityModule(ChainEnv().observation_space).train_in_background, "off by default"
     out_sync = sync.maybe_train()
     assert "predictor_loss" in out_sync and "vae_loss" in out_sync
@@ -190,18 +188,17 @@ def threads_seen_by_the_fits(module: GoalCuriosityModule, monkeypatch) -> list[t
     return seen
 
 
-@pytest.mark.parametrize("variant, caller, cores, expected", [
-    (dict(), 1, 4, 2),  # in place: the caller's threads and the scoring worker's, both idle
-    (dict(), 2, 3, 3),  # ... at most the cores
-    (dict(), 3, 2, 3),  # ... and never fewer than the caller's
-    (dict(overlap_ppo_update=True), 1, 4, 2),  # overlapped with PPO's update, then waited for
-    (dict(train_in_background=True), 1, 4, 1),  # beside the rollout: the caller's count
-    (dict(overlap_ppo_update=True, update_threads=3), 1, 4, 3),
+@pytest.mark.parametrize("variant, caller, expected", [
+    (dict(), 1, 1),  # by default the caller's count
+    (dict(), 2, 2),
+    (dict(update_threads=2), 1, 2),  # in place
+    (dict(update_threads=2, overlap_ppo_update=True), 1, 2),  # overlapped with PPO's update, then waited for
+    (dict(update_threads=3, train_in_background=True), 1, 3),  # beside the rollout
+    (dict(update_threads=1, overlap_ppo_update=True), 2, 1),
 ])
-def test_updates_run_with_their_thread_count_and_leave_the_callers_alone(variant, caller, cores, expected, monkeypatch):
+def test_updates_run_with_their_thread_count_and_leave_the_callers_alone(variant, caller, expected, monkeypatch):
     """update_threads: every minibatch of both fits runs with the stated count, in a worker thread when the
     update overlaps, and the caller's count is the same after the update as before."""
-    monkeypatch.setattr("sb3_gocu.curiosity.module.available_cores", lambda: cores)
     th.set_num_threads(caller)
     _, module = in_place_and_variant_after_steps(**variant)
     seen = threads_seen_by_the_fits(module, monkeypatch)

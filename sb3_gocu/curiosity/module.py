@@ -93,11 +93,6 @@ def _counts_from_state(state: dict[str, th.Tensor]) -> dict[bytes, int]:
     return {bytes(k): int(n) for k, n in zip(state["keys"].numpy(), state["counts"].tolist())}
 
 
-def available_cores() -> int:
-    """Cores this process may run on (its CPU affinity where the system reports it)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 @contextlib.contextmanager
 def torch_threads(n: int | None):
     """Run the block with ``n`` torch threads in the calling thread (None: leave the count alone), then restore
@@ -254,13 +249,14 @@ class GoalCuriosityModule:
         Results): the rollouts waited 23.9 s for the updates per 100k steps, against 34.9 s in place (same run,
         1 torch thread). False: run the update in place
     :param update_threads: torch threads of a VAE or predictor update (pretraining's included). ``None``
-        (default): twice the caller's ``torch.get_num_threads()``, at most :func:`available_cores`, because an
-        update that blocks training (in place, or overlapped with PPO's update and then waited for) leaves both
-        the caller's share and the scoring worker's idle; with ``train_in_background``, the caller's count (the
-        update runs beside the rollout). The count changes the low bits of some matrix products (torch splits
-        their sums by thread), so a seed repeats a run bit for bit at the same count (1: the updates as before
-        this setting). Measured on DoorKey-8x8 over 400k steps, 1 torch thread: PPO_GoCu's time per step 1.27x
-        plain PPO's against 1.38x with 1 (same run; README, Results, "Throughput")
+        (default): the caller's ``torch.get_num_threads()``. An update that training waits for (in place, or
+        overlapped with PPO's update and then waited for) leaves the caller's share of the machine and the
+        scoring worker's idle, so 2 on a 2-core machine with 1 torch thread uses both: on DoorKey-8x8 over 400k
+        steps PPO_GoCu's time per step was 1.27x plain PPO's with 2 against 1.38x with 1 (same run; README,
+        Results, "Throughput"). It is opt-in: some matrix products split their sums by thread, so the count
+        changes the updates' low bits and with them the run a seed gives, and the 3-seed DoorKey-8x8 figures
+        of the defaults were measured with 1; with 2, seed 1 was not solved within 0.8M steps (README). With
+        ``train_in_background`` the update runs beside the rollout, so more threads compete with it
     :param scoring_process: score in a worker process rather than a worker thread (``submit(..., background=True)``,
         PPO_GoCu's ``async_scoring``): the process has its own GIL, so the scoring no longer waits for the env
         stepping's, and the env stepping no longer waits for the scoring's. The values are the same to the bit
@@ -839,15 +835,13 @@ class GoalCuriosityModule:
         """Inference embeds with a frozen copy of the VAE, so the VAE itself can train while steps go on."""
         self._encoder = copy.deepcopy(self.vae).eval().requires_grad_(False)
 
-    def _update_thread_count(self, beside_rollout: bool) -> int:
+    def _update_thread_count(self) -> int:
         """Torch threads of an update prepared now (call it in the caller's thread; see ``update_threads``)."""
         caller = th.get_num_threads()  # also fixes the caller's count before an update thread changes torch's default
-        if self.update_threads is not None:
-            return self.update_threads
-        return caller if beside_rollout else max(caller, min(available_cores(), 2 * caller))
+        return caller if self.update_threads is None else self.update_threads
 
     # VAE update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
-    def _prepare_vae(self, epochs: int | None, beside_rollout: bool = False) -> dict[str, Any] | None:
+    def _prepare_vae(self, epochs: int | None) -> dict[str, Any] | None:
         epochs = self.vae_epochs if epochs is None else epochs
         data = self.memory.observations[: self.memory.size].copy()
         if len(data) == 0 or epochs == 0:
@@ -865,7 +859,7 @@ class GoalCuriosityModule:
             c = np.fromiter((counts[k] for k in first), dtype=np.float64, count=len(first))
             weights = (c * len(c) / c.sum()).astype(np.float32)
         self.last_vae_update = self.n_recorded_steps
-        job: dict[str, Any] = {"data": data, "weights": weights, "epochs": epochs, "threads": self._update_thread_count(beside_rollout)}
+        job: dict[str, Any] = {"data": data, "weights": weights, "epochs": epochs, "threads": self._update_thread_count()}
         n_val = int(round(self.vae_holdout * len(data)))
         if self.vae_patience > 0 and n_val >= 1:
             order = self.rng.permutation(len(data))
@@ -990,7 +984,7 @@ class GoalCuriosityModule:
         return out
 
     # predictor update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
-    def _prepare_predictor(self, beside_rollout: bool = False) -> dict[str, Any] | None:
+    def _prepare_predictor(self) -> dict[str, Any] | None:
         self.collect_all()  # the trajectory store takes a state's phi when its ticket is collected
         phi_s, phi_g, dist = self.trajectories.sample_pairs(
             self.predictor_pairs, self.max_distance, self.rng, first_visit=self.first_visit_distance
@@ -1011,7 +1005,7 @@ class GoalCuriosityModule:
             phi_s, phi_g, dist = phi_s[first], phi_g[first], dist[first]
             weights = th.from_numpy(counts * (len(counts) / counts.sum())).float()  # mean 1 over the distinct pairs
         return {"phi_s": phi_s.to(self.device), "phi_g": phi_g.to(self.device), "dist": dist.to(self.device),
-                "weights": weights.to(self.device), "drawn": drawn, "threads": self._update_thread_count(beside_rollout)}
+                "weights": weights.to(self.device), "drawn": drawn, "threads": self._update_thread_count()}
 
     @th.no_grad()
     def label_pairs(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor) -> th.Tensor:
@@ -1119,11 +1113,11 @@ class GoalCuriosityModule:
         # predictor first: a VAE update makes the stored embeddings (the predictor's pairs) stale
         jobs: list[tuple[str, dict[str, Any]]] = []
         if self.n_recorded_steps - self.last_predictor_update >= self.predictor_train_freq:
-            job = self._prepare_predictor(beside_rollout=self.train_in_background)
+            job = self._prepare_predictor()
             if job is not None:
                 jobs.append(("predictor", job))
         if self.n_recorded_steps - self.last_vae_update >= self.vae_train_freq:
-            job = self._prepare_vae(None, beside_rollout=self.train_in_background)
+            job = self._prepare_vae(None)
             if job is not None:
                 jobs.append(("vae", job))
         if not jobs:

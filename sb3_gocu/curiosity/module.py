@@ -914,15 +914,9 @@ class GoalCuriosityModule:
                     x = self.adapter.to_tensor(data[idx], self.device)
                     w = th.from_numpy(weights[idx]).to(self.device)
                     loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
-                    if not th.isfinite(loss):
+                    if not self._guarded_step(self.vae, self.vae_optimizer, loss):
                         skipped += 1
                         continue
-                    self.vae_optimizer.zero_grad()
-                    loss.backward()
-                    if not self._grads_finite(self.vae):
-                        skipped += 1
-                        continue
-                    self.vae_optimizer.step()
                     losses.append(loss.item())
                 if on_epoch is not None:
                     on_epoch(epoch)
@@ -1049,15 +1043,9 @@ class GoalCuriosityModule:
                     logp = th.log_softmax(self.predictor(phi_s[idx], phi_g[idx]), dim=-1)
                     t, w = target[idx], weights[idx]
                     loss = -(w * (t * logp[:, 1] + (1 - t) * logp[:, 0])).mean()
-                    if not th.isfinite(loss):
+                    if not self._guarded_step(self.predictor, self.predictor_optimizer, loss):
                         skipped += 1
                         continue
-                    self.predictor_optimizer.zero_grad()
-                    loss.backward()
-                    if not self._grads_finite(self.predictor):
-                        skipped += 1
-                        continue
-                    self.predictor_optimizer.step()
                     losses.append(loss.item())
                     accs.append(float((w * ((logp[:, 1] > logp[:, 0]) == (t > 0.5)).float()).sum() / w.sum()))
                 if on_epoch is not None:
@@ -1207,6 +1195,17 @@ class GoalCuriosityModule:
         # the 2-norm (fused over tensors) is non-finite iff some entry is (or squares overflow: a diverged step,
         # skipped too); 10x cheaper than the inf-norm, which cost a third of a predictor step
         return not grads or bool(th.isfinite(th.nn.utils.get_total_norm(grads, norm_type=2.0)))
+
+    def _guarded_step(self, network: th.nn.Module, optimizer: th.optim.Optimizer, loss: th.Tensor) -> bool:
+        """One optimiser step on ``loss``, unless the loss or a gradient is non-finite; whether it stepped."""
+        if not th.isfinite(loss):
+            return False
+        optimizer.zero_grad()
+        loss.backward()
+        if not self._grads_finite(network):
+            return False
+        optimizer.step()
+        return True
 
     @staticmethod
     def nonfinite_entries(state: dict[str, th.Tensor]) -> list[str]:

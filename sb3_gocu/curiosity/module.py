@@ -151,8 +151,7 @@ class ScoringTicket:
         self.keys: list[bytes] = []
         self.episode_ids = np.zeros(0, dtype=np.int64)
         self.has_goals = np.zeros(0, dtype=bool)  # whether each miss row's episode has its K goals
-        self.goal_parts: th.Tensor | None = None
-        self.goal_versions = np.zeros(0, dtype=np.int64)  # version of each miss row's goal halves (a scoring process keeps copies)
+        self.goal_parts: th.Tensor | None = None  # the miss rows' goal halves, copied for a worker thread or the caller
         self.folded: FoldedPredictor | None = None
         self.factor: np.ndarray | None = None  # revisit factor
         self.recording = False
@@ -648,10 +647,7 @@ class GoalCuriosityModule:
                     self._phi_cache.clear()
                 for j in todo:
                     self._phi_cache[keys[j]] = (ticket, j)
-            envs = th.from_numpy(env_indices[m_idx])
             ticket.has_goals = self._has_goals[env_indices[m_idx]]
-            ticket.goal_versions = self._goal_version[env_indices[m_idx]]
-            ticket.goal_parts = self._goal_parts[envs]  # a copy (indexing), the episode's goals: a new episode may start before scoring
             ticket.folded = self._folded
             for j in miss:
                 self._pending[env_indices[j]][keys[j]] = (ticket, j)
@@ -744,10 +740,13 @@ class GoalCuriosityModule:
             for j, e in enumerate(env_indices):
                 self._episodes[e].append(raw[j].copy())
             self.n_recorded_steps += n
-        if len(ticket.miss):
-            if background and self.scoring_process:
-                ticket.future = self.start_scoring_process().submit(ticket, self._eq13_args)
-            elif background:
+        if len(ticket.miss) and background and self.scoring_process:
+            # the process keeps each env's goal halves: it is sent those changed since it last had them
+            ticket.future = self.start_scoring_process().submit(ticket, self._eq13_args, self._goal_parts, self._goal_version)
+        elif len(ticket.miss):
+            # a copy (indexing) of the episodes' goal halves: a new episode may start before scoring
+            ticket.goal_parts = self._goal_parts[th.from_numpy(env_indices[ticket.miss])]
+            if background:
                 if self._scorer is None:
                     self._scorer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gocu-score")
                 ticket.future = self._scorer.submit(self._compute, ticket)

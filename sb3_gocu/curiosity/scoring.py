@@ -156,8 +156,13 @@ class ProcessScorer:
             self._receive_one()
         self._finalizer()
 
-    def submit(self, ticket: Any, eq13_args: tuple[float, str, float]) -> _ProcessFuture:
-        """Send a ticket (its ``miss`` rows: phi known or to embed, their envs' goals) to the child."""
+    def submit(self, ticket: Any, eq13_args: tuple[float, str, float], goal_parts: th.Tensor, goal_versions: np.ndarray) -> _ProcessFuture:
+        """Send a ticket (its ``miss`` rows: phi known or to embed, their envs' goals) to the child.
+
+        :param goal_parts: every env's current goal halves, (n_envs, K, h): the rows of the ticket's envs whose
+            version the child does not have are copied into the message
+        :param goal_versions: their versions, (n_envs,)
+        """
         if self._proc.poll() is not None:
             raise self._ended()
         tid = self._next_tid
@@ -177,9 +182,9 @@ class ProcessScorer:
                 phi[pos] = earlier.phi[row]
         envs = ticket.env_indices[miss]
         goals: dict[int, th.Tensor] = {}
-        for i, (e, version) in enumerate(zip(envs.tolist(), ticket.goal_versions.tolist())):
-            if self._goal_versions.get(e) != version and e not in goals:
-                goals[e] = ticket.goal_parts[i].clone()
+        for e, version in zip(envs.tolist(), goal_versions[envs].tolist()):
+            if self._goal_versions.get(e) != version:
+                goals[e] = goal_parts[e].clone()
                 self._goal_versions[e] = version
         message: dict[str, Any] = {
             "tid": tid, "phi": phi, "embed_pos": embed_pos, "raw": ticket.raw if len(embed_pos) else None, "refs": refs,

@@ -1,5 +1,7 @@
 """Scoring in a worker process (``scoring_process=True``): the same values as scoring in the caller, bit for bit."""
 
+import threading
+
 import numpy as np
 import pytest
 import torch as th
@@ -61,6 +63,24 @@ def test_module_scores_the_same_in_a_process_as_in_the_caller():
     r = np.concatenate([r for r, _ in sync])
     assert len(np.unique(r)) > 5  # the rewards vary: a constant would match trivially
     assert m_other.time_inference_background > 0 and m_other.cpu_inference_background > 0
+
+
+def test_many_tickets_in_flight_do_not_block_the_pipes():
+    """The answers not read yet stay below ``max_answer_bytes``: a caller that submits many tickets before it
+    collects (the steps queued beside an update) is not stuck writing to a child stuck writing its answers.
+    Here 20 tickets of 64 new frames each are in flight, about 33 KB of answer each."""
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (40, 64, 16, 16, 3), dtype=np.uint8)  # all new: every row embedded and scored
+    dones = np.zeros((40, 64), dtype=bool)
+    result: dict = {}
+    worker = threading.Thread(target=lambda: result.update(out=run_module("process", frames, dones, 40)), daemon=True)
+    worker.start()
+    worker.join(timeout=120)
+    assert not worker.is_alive(), "the caller and the scoring process blocked each other"
+    sync, _ = run_module("sync", frames, dones, 0)
+    for (r1, n1), (r2, n2) in zip(sync, result["out"][0]):
+        assert np.array_equal(r1, r2) and np.array_equal(n1, n2)
+    assert result["out"][1]._process._answer_bytes == 0
 
 
 def test_phi_of_a_ticket_in_flight_is_taken_from_the_process():

@@ -90,6 +90,7 @@ class _ProcessFuture:
         self._scorer, self.ticket, self.tid = scorer, ticket, tid
         self._done = False
         self._result: Any = None
+        self.answer_bytes = 0  # the answer's size, about
 
     def done(self) -> bool:
         return self._done
@@ -136,6 +137,8 @@ class ProcessScorer:
         self._goal_versions: dict[int, int] = {}
         self._next_tid = 0
         self._in_flight: list[_ProcessFuture] = []  # in submission order, answers not received yet
+        self._answer_bytes = 0  # their answers' sizes (bounded: see submit)
+        self.max_answer_bytes = 32 * 1024
         self.bytes_sent = 0
 
     @staticmethod
@@ -165,6 +168,12 @@ class ProcessScorer:
         """
         if self._proc.poll() is not None:
             raise self._ended()
+        # the child answers in order into a pipe that holds 64 KiB: if the answers not read yet outgrew it, the
+        # child would block writing one and stop reading, and this write could block too (many submits without a
+        # collect, e.g. the steps queued beside an update). Read answers first while they would pass the bound.
+        answer_bytes = len(ticket.miss) * (ticket.phi.shape[1] + 1) * 4 + 1024
+        while self._in_flight and self._answer_bytes + answer_bytes > self.max_answer_bytes:
+            self._receive_one()
         tid = self._next_tid
         self._next_tid += 1
         miss = ticket.miss
@@ -202,6 +211,8 @@ class ProcessScorer:
         except OSError as error:
             raise self._ended() from error
         future = _ProcessFuture(self, ticket, tid)
+        future.answer_bytes = answer_bytes
+        self._answer_bytes += answer_bytes
         self._in_flight.append(future)
         return future
 
@@ -225,6 +236,7 @@ class ProcessScorer:
         if tid != future.tid:
             raise RuntimeError(f"the GoCu scoring process answered ticket {tid}, expected {future.tid}")
         self._in_flight.pop(0)
+        self._answer_bytes -= future.answer_bytes
         _, _, phi, rewards, wall, cpu = answer
         ticket = future.ticket
         ticket.phi[ticket.miss] = phi

@@ -164,7 +164,6 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         out["curiosity_updates_s"] = out.get("curiosity_updates_s", 0.0) + waits_in_rollouts[0]
         out["pretrain_s"] = pretrain_timer.totals.get("pretrain", 0.0) - pretrain_before
         out["waiting_for_worker_s"] = mod.time_scoring_wait
-        out["steps_queued"] = float(getattr(mod, "steps_queued", 0))  # vector steps taken beside an update (overlap_ppo_update)
     out["policy_and_bookkeeping_s"] = (
         out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0) - out.get("curiosity_updates_s", 0.0)
     )
@@ -263,10 +262,7 @@ def main() -> None:
     print("  (end_of_learn_wait_s: learn's end waiting for an update still running; other_s: the rest of learn, outside the")
     print("   rollouts, PPO's updates, pretraining and that wait)")
     print("  (with background updates, VAE/predictor training overlaps the rollouts; by default (overlap_ppo_update) it overlaps")
-    print("   PPO's update, and the next rollout's env steps and policy go on beside the rest, their curiosity queued until")
-    print("   it is taken into use: only the waits are on the critical path; "
-          f"vector steps queued: {gocu.get('steps_queued', 0.0):.0f}"
-          + "".join(f", {results[k].get('steps_queued', 0.0):.0f}" for k in extras) + ")")
+    print("   PPO's update and the next rollout waits for the rest: only the waits are on the critical path)")
     print("  (curiosity_updates_s: time the rollouts waited for VAE/predictor updates; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")
     print(f"  (pretrain_s is the whole random-policy pretraining phase (measured, not a remainder); "

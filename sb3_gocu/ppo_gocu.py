@@ -284,17 +284,14 @@ class PPO_GoCu(PPO):
                     else:
                         clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
 
-                # with a deferring wrapper, r_gc of this step is scored in a worker while the envs take the next
-                # step; it is added to its buffer row then (the row holds 0 or the truncation bootstrap until then).
-                # Steps taken beside a curiosity update (overlap_ppo_update) are queued until it is taken into use;
-                # the backlog is then taken two steps at a time, and the rest at the rollout's end
+                # with a deferring wrapper, r_gc of this step is scored in a worker thread while the envs take the
+                # next step; it is added to its buffer row then (the row holds 0 or the truncation bootstrap until then)
                 new_obs, rewards, dones, infos = env.step(clipped_actions)
                 if gocu is not None:
                     waiting.append((gocu.deferred, None))
                     gocu.deferred = None
-                    for _ in range(2):
-                        if len(waiting) > 1 and not gocu.module.is_queued(waiting[0][0][0]):
-                            self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
+                    while len(waiting) > 1:
+                        self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
                     intrinsic = np.zeros(env.num_envs, dtype=np.float32)
                 else:
                     intrinsic = np.array([info["gocu_reward"] for info in infos], dtype=np.float32)

@@ -175,48 +175,6 @@ def test_an_update_overlapping_ppos_is_taken_into_use_before_the_next_step():
     assert "predictor_loss" not in overlap.maybe_train(), "reported once"
 
 
-def test_steps_submitted_while_an_overlapped_update_runs_are_queued_then_scored_with_its_networks():
-    """overlap_ppo_update: a background submit while the update still runs is queued, not waited for; the queued
-    steps are submitted in order once the update is taken into use, so rewards and state are those of in place."""
-    in_place, overlap = in_place_and_variant_after_steps(overlap_ppo_update=True)
-    in_place.maybe_train()
-    gate = threading.Event()
-    background = overlap._background
-    overlap._background = lambda: (gate.wait(30), background())  # the update runs until the test lets it
-    overlap.maybe_train()
-    rng = np.random.default_rng(3)
-    batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.3) for _ in range(8)]
-    assert any(d.any() for _, d in batches[:4]), "an episode ends among the queued steps (new goals drawn)"
-    queued = [overlap.submit(obs, dones) for obs, dones in batches[:4]]
-    assert all(overlap.is_queued(t) for t in queued) and overlap.update_running and overlap.steps_queued == 4
-    gate.set()
-    overlap._job.join()
-    later = [overlap.submit(obs, dones) for obs, dones in batches[4:]]  # the first of these takes the update into use
-    assert not overlap.update_running and not any(overlap.is_queued(t) for t in queued + later)
-    got = [overlap.collect(t) for t in queued + later]
-    want = [in_place.step(obs, dones) for obs, dones in batches]
-    for (raw_a, norm_a), (raw_b, norm_b) in zip(got, want):
-        assert np.array_equal(raw_a, raw_b) and np.array_equal(norm_a, norm_b)
-    a, b = flat_tensors(in_place.state_dict()), flat_tensors(overlap.state_dict())
-    assert a.keys() == b.keys() and all(th.equal(a[k], b[k]) for k in a)
-
-
-def test_collecting_a_queued_step_takes_the_update_into_use():
-    in_place, overlap = in_place_and_variant_after_steps(overlap_ppo_update=True)
-    in_place.maybe_train()
-    gate = threading.Event()
-    background = overlap._background
-    overlap._background = lambda: (gate.wait(30), background())
-    overlap.maybe_train()
-    obs = np.array([[0.3, 0.09], [0.6, 0.36]], dtype=np.float32)
-    ticket = overlap.submit(obs, np.zeros(2, bool))
-    assert overlap.is_queued(ticket)
-    threading.Timer(0.2, gate.set).start()
-    assert np.array_equal(overlap.collect(ticket)[0], in_place.step(obs, np.zeros(2, bool))[0])
-    assert not overlap.update_running and not overlap.is_queued(ticket)
-    assert overlap.collect(ticket) is overlap.collect(ticket), "taken once"
-
-
 def threads_seen_by_the_fits(module: GoalCuriosityModule, monkeypatch) -> list[tuple[str, int, int]]:
     """Record (network, torch threads, thread id) at every minibatch step of the module's VAE and predictor fits."""
     seen: list[tuple[str, int, int]] = []

@@ -7,7 +7,6 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 import time
 import zipfile
 
@@ -559,51 +558,6 @@ def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit(proc
     assert not differences(parameters(a), parameters(b))
     assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())
     assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
-
-
-@pytest.mark.parametrize("process", [True, False], ids=["scoring_process", "scoring_thread"])
-def test_steps_beside_a_running_update_are_queued_and_match_the_in_place_run_bit_for_bit(process):
-    """overlap_ppo_update: when an update outlasts PPO's, the next rollout goes on beside it, its steps queued
-    in the module until the update is taken into use: still the run of in place updates, bit for bit. Each
-    update here waits until 5 steps have been queued."""
-    runs = []
-    for overlap in (True, False):
-        model = small_model(curiosity=dict(predictor_train_freq=128, vae_train_freq=256, overlap_ppo_update=overlap, scoring_process=process))
-        module = model.curiosity
-        if overlap:
-            gate, streak = [threading.Event()], [0]  # the gate of the update started last
-            maybe_train, background, submit, finish = module.maybe_train, module._background, module.submit, module.finish_background_update
-
-            def gated_maybe_train():
-                gate[0], streak[0] = threading.Event(), 0
-                return maybe_train()
-
-            def gated_background():
-                gate[0].wait(30)
-                background()
-
-            def counting_submit(*args, **kwargs):
-                ticket = submit(*args, **kwargs)
-                streak[0] = streak[0] + 1 if module.is_queued(ticket) else 0
-                if streak[0] == 5:
-                    gate[0].set()
-                return ticket
-
-            def releasing_finish():
-                if module.update_running:  # taking the update into use (learn's end, a queued step collected) lets it run
-                    gate[0].set()
-                return finish()
-
-            module.maybe_train, module._background = gated_maybe_train, gated_background
-            module.submit, module.finish_background_update = counting_submit, releasing_finish
-        model.learn(512)  # 4 predictor updates, 2 VAE updates, the last at learn's end
-        runs.append(model)
-    a, b = runs
-    assert a.curiosity.steps_queued >= 5 * 3 and b.curiosity.steps_queued == 0
-    assert not differences(parameters(a), parameters(b))
-    assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())
-    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
-    assert np.array_equal(a.rollout_buffer.rewards, b.rollout_buffer.rewards)
 
 
 def test_module_initial_weights_depend_on_its_seed_alone():

@@ -161,16 +161,6 @@ class ScoringTicket:
         self.result: tuple[np.ndarray, np.ndarray] | None = None
 
 
-class QueuedStep:
-    """A step handed to :meth:`GoalCuriosityModule.submit` while an update overlapping PPO's (``overlap_ppo_update``)
-    still ran: it is submitted, in order, when that update is taken into use, and :meth:`~GoalCuriosityModule.collect`
-    then returns its ticket's rewards."""
-
-    def __init__(self, raw: np.ndarray, dones: np.ndarray, env_indices: np.ndarray | None, recording: bool) -> None:
-        self.raw, self.dones, self.env_indices, self.recording = raw, dones, env_indices, recording
-        self.ticket: ScoringTicket | None = None  # the ticket it became
-
-
 class GoalCuriosityModule:
     """Goal-based curiosity (GoCu) on batches of observations.
 
@@ -454,8 +444,6 @@ class GoalCuriosityModule:
         self._visit_counts: list[dict[bytes, int]] = []
         self._pending: list[dict[bytes, tuple[ScoringTicket, int]]] = []  # states of each episode being scored
         self._outstanding: deque[ScoringTicket] = deque()
-        self._queued: deque[QueuedStep] = deque()  # steps that arrived while an overlapped update ran
-        self.steps_queued = 0  # how many (vector steps)
         self._scorer: ThreadPoolExecutor | None = None
         self._process: ProcessScorer | None = None
         self._phi_cache: dict[bytes, th.Tensor] = {}
@@ -728,34 +716,16 @@ class GoalCuriosityModule:
         """
         return self.collect(self.submit(observations, dones, env_indices, background=False))
 
-    def submit(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None, background: bool = True) -> "ScoringTicket | QueuedStep":
+    def submit(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None, background: bool = True) -> "ScoringTicket":
         """First half of :meth:`step`: everything but the VAE's embedding and the predictor's scoring of the states
         new to their episode (and to the embedding memo), which run in a worker thread (``background=True``) while the caller goes on (e.g. steps the envs again). Take the
         rewards with :meth:`collect`, in the order of submission; :meth:`step` is ``collect(submit(...))``.
         The values are the same either way: the states scored together are the same, and every update of the
         module's state (memo, normaliser, statistics) happens in the caller's thread in submission order.
-
-        While an update started beside PPO's (``overlap_ppo_update``) still runs, a ``background`` step is queued
-        (a :class:`QueuedStep`) instead of waiting for it: the caller's rollout goes on beside the update, and the
-        queued steps are submitted in order when the update is taken into use (at the first submit after it
-        ended, at the first collect of a queued step, or at any other use of the module), so the values are those
-        of waiting. :meth:`is_queued` tells whether collecting a step would wait for the update.
         """
+        self._await_overlapped_update()
         t0 = time.perf_counter()
         raw = self.adapter.extract(observations)
-        if background and self._job is not None and self._job_until_next_use and self._job.is_alive():
-            # an update overlapping PPO's still runs: the caller goes on (e.g. steps the envs), and the step is
-            # submitted when the update is taken into use, after the steps queued before it: same order, same values
-            step = QueuedStep(np.array(raw), np.array(dones, dtype=bool), None if env_indices is None else np.array(env_indices), self.recording)
-            self._queued.append(step)
-            self.steps_queued += 1
-            self.time_inference += time.perf_counter() - t0
-            return step
-        self._await_overlapped_update()
-        return self._submit_now(raw, dones, env_indices, background, t0)
-
-    def _submit_now(self, raw: np.ndarray, dones: np.ndarray, env_indices: np.ndarray | None, background: bool, t0: float) -> "ScoringTicket":
-        """:meth:`submit` of a step's raw observations, with the networks in use now."""
         n = len(raw)
         env_indices = np.arange(n) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
         self.ensure_envs(int(env_indices.max()) + 1)
@@ -799,16 +769,10 @@ class GoalCuriosityModule:
             self._process = ProcessScorer(self._to_tensor)
         return self._process
 
-    def collect(self, ticket: "ScoringTicket | QueuedStep") -> tuple[np.ndarray, np.ndarray]:
+    def collect(self, ticket: "ScoringTicket") -> tuple[np.ndarray, np.ndarray]:
         """Second half of :meth:`step`: the raw and normalised rewards of a ticket from :meth:`submit`. Tickets
         are taken in submission order (taking one takes the earlier ones first); taking one twice returns the
         same arrays."""
-        if isinstance(ticket, QueuedStep):
-            if ticket.ticket is None:
-                self.finish_background_update()  # takes the update into use and submits the queued steps
-            if ticket.ticket is None:
-                raise ValueError("this queued step does not belong to this module")
-            return self.collect(ticket.ticket)
         if ticket.result is not None:
             return ticket.result
         while self._outstanding and self._outstanding[0] is not ticket:
@@ -845,11 +809,6 @@ class GoalCuriosityModule:
         ticket.result = (rewards, normalized)
         self.time_inference += time.perf_counter() - t0
         return ticket.result
-
-    @staticmethod
-    def is_queued(ticket: "ScoringTicket | QueuedStep") -> bool:
-        """Whether a step from :meth:`submit` still waits for an overlapped update (collecting it would wait)."""
-        return isinstance(ticket, QueuedStep) and ticket.ticket is None
 
     def collect_all(self) -> None:
         """Take every outstanding ticket (before the networks, the goals or the state change hands)."""
@@ -1198,18 +1157,10 @@ class GoalCuriosityModule:
         self._job_until_next_use = False
         result, self._job_result = self._job_result, {}
         if result["error"] is not None:
-            self._queued.clear()
             raise RuntimeError("a background curiosity update failed") from result["error"]
         out: dict[str, float] = {}
         for name, fit in result["fits"]:
             out.update(self._finish_predictor(fit) if name == "predictor" else self._finish_vae(fit))
-        while self._queued:  # the steps that went on beside the update, in order, with its networks
-            step = self._queued.popleft()
-            recording, self.recording = self.recording, step.recording
-            try:
-                step.ticket = self._submit_now(step.raw, step.dones, step.env_indices, True, time.perf_counter())
-            finally:
-                self.recording = recording
         return out
 
     def pop_reward_stats(self) -> dict[str, float]:
@@ -1221,7 +1172,6 @@ class GoalCuriosityModule:
             "cache_hit_rate": self._cache_hits / max(1, self._cache_lookups),
             "time_inference": self.time_inference,
             "time_training": self.time_training,
-            "steps_queued": float(self.steps_queued),
         }
         if self._reward_count:
             mean = self._reward_sum / self._reward_count
@@ -1292,8 +1242,8 @@ class GoalCuriosityModule:
         """Everything the module learned and remembers, as tensors and plain Python values (loadable with
         ``torch.load(..., weights_only=True)``). A background update still running is waited for and taken
         into use first, and so are scores still being computed (:meth:`submit`)."""
-        self.finish_background_update()
         self.collect_all()
+        self.finish_background_update()
         return {
             "vae": self.vae.state_dict(),
             "vae_optimizer": self.vae_optimizer.state_dict(),
@@ -1336,8 +1286,8 @@ class GoalCuriosityModule:
             bad = self.nonfinite_entries(state[net])
             if bad:
                 raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
-        self.finish_background_update()
         self.collect_all()
+        self.finish_background_update()
         self.vae.load_state_dict(state["vae"], strict=strict)
         self._phi_cache.clear()
         self.predictor.load_state_dict(state["predictor"], strict=strict)

@@ -67,7 +67,7 @@ def test_module_scores_the_same_in_a_process_as_in_the_caller():
 
 def test_many_tickets_in_flight_do_not_block_the_pipes():
     """The answers not read yet stay below ``max_answer_bytes``: a caller that submits many tickets before it
-    collects (the steps queued beside an update) is not stuck writing to a child stuck writing its answers.
+    collects is not stuck writing to a child stuck writing its answers.
     Here 20 tickets of 64 new frames each are in flight, about 33 KB of answer each."""
     rng = np.random.default_rng(0)
     frames = rng.integers(0, 256, (40, 64, 16, 16, 3), dtype=np.uint8)  # all new: every row embedded and scored

@@ -169,8 +169,8 @@ class ProcessScorer:
         if self._proc.poll() is not None:
             raise self._ended()
         # the child answers in order into a pipe that holds 64 KiB: if the answers not read yet outgrew it, the
-        # child would block writing one and stop reading, and this write could block too (many submits without a
-        # collect, e.g. the steps queued beside an update). Read answers first while they would pass the bound.
+        # child would block writing one and stop reading, and this write could block too (a caller submitting many
+        # tickets before collecting). Read answers first while they would pass the bound.
         answer_bytes = len(ticket.miss) * (ticket.phi.shape[1] + 1) * 4 + 1024
         while self._in_flight and self._answer_bytes + answer_bytes > self.max_answer_bytes:
             self._receive_one()
@@ -230,6 +230,7 @@ class ProcessScorer:
             raise self._ended() from error
         if answer[0] == "error":
             self._in_flight.pop(0)
+            self._answer_bytes -= future.answer_bytes
             future._done = True
             raise RuntimeError(f"the GoCu scoring process failed:\n{answer[1]}")
         tid = answer[1]

@@ -229,3 +229,24 @@ def test_mean_curve_of_runs_of_different_lengths(plot_curves):
     np.testing.assert_allclose(mean, [0.0, 0.3, 0.6])
     np.testing.assert_allclose(lo, [0.0, 0.1, 0.2])
     np.testing.assert_allclose(hi, [0.0, 0.5, 1.0])
+
+
+def test_compare_runs_finds_the_first_differing_row(two_runs, tmp_path, capsys):
+    compare = load_script("compare_runs", "benchmarks/compare_runs.py")
+    out, _ = two_runs
+    original = out / "ppo_gocu_seed0.csv"
+    rows = read(original)
+    assert len(rows) >= 3
+    compare.main([str(original), str(original)])
+    assert f"rows compared: {len(rows)} (to {rows[-1]['steps']} steps); rows differing: 0" in capsys.readouterr().out
+    rows[2]["intrinsic_mean"] = str(float(rows[2]["intrinsic_mean"]) + 1e-6)
+    changed = tmp_path / "changed.csv"
+    with open(changed, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    with pytest.raises(SystemExit) as exit_info:
+        compare.main([str(original), str(changed)])
+    assert exit_info.value.code == 1
+    printed = capsys.readouterr().out
+    assert "rows differing: 1" in printed and f"first at {rows[2]['steps']} steps: intrinsic_mean" in printed

@@ -86,11 +86,11 @@ def score_rows(
 class _ProcessFuture:
     """What :meth:`ProcessScorer.submit` returns: ``result()`` waits for the process's answer (the rewards)."""
 
-    def __init__(self, scorer: "ProcessScorer", ticket: Any, tid: int) -> None:
+    def __init__(self, scorer: "ProcessScorer", ticket: Any, tid: int, answer_bytes: int) -> None:
         self._scorer, self.ticket, self.tid = scorer, ticket, tid
+        self.answer_bytes = answer_bytes  # the answer's size, about
         self._done = False
         self._result: Any = None
-        self.answer_bytes = 0  # the answer's size, about
 
     def done(self) -> bool:
         return self._done
@@ -137,8 +137,7 @@ class ProcessScorer:
         self._goal_versions: dict[int, int] = {}
         self._next_tid = 0
         self._in_flight: list[_ProcessFuture] = []  # in submission order, answers not received yet
-        self._answer_bytes = 0  # their answers' sizes (bounded: see submit)
-        self.max_answer_bytes = 32 * 1024
+        self.max_answer_bytes = 32 * 1024  # bound on their answers' sizes (see submit)
         self.bytes_sent = 0
 
     @staticmethod
@@ -152,6 +151,11 @@ class ProcessScorer:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+    @property
+    def _answer_bytes(self) -> int:
+        """Sizes of the answers not received yet, about."""
+        return sum(f.answer_bytes for f in self._in_flight)
 
     def close(self) -> None:
         """Wait for the answers still due, then stop the child."""
@@ -210,9 +214,7 @@ class ProcessScorer:
             self._send.send_bytes(payload)
         except OSError as error:
             raise self._ended() from error
-        future = _ProcessFuture(self, ticket, tid)
-        future.answer_bytes = answer_bytes
-        self._answer_bytes += answer_bytes
+        future = _ProcessFuture(self, ticket, tid, answer_bytes)
         self._in_flight.append(future)
         return future
 
@@ -230,14 +232,12 @@ class ProcessScorer:
             raise self._ended() from error
         if answer[0] == "error":
             self._in_flight.pop(0)
-            self._answer_bytes -= future.answer_bytes
             future._done = True
             raise RuntimeError(f"the GoCu scoring process failed:\n{answer[1]}")
         tid = answer[1]
         if tid != future.tid:
             raise RuntimeError(f"the GoCu scoring process answered ticket {tid}, expected {future.tid}")
         self._in_flight.pop(0)
-        self._answer_bytes -= future.answer_bytes
         _, _, phi, rewards, wall, cpu = answer
         ticket = future.ticket
         ticket.phi[ticket.miss] = phi

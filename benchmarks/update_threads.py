@@ -9,6 +9,10 @@ a VAE step (eq 8, Adam) on ``--vae-batch`` 32x32 RGB images and a predictor step
 with 1 and with 2 torch threads while the main thread keeps 1, ``--repeats`` times alternately, after 3 warm-up
 steps. It prints the mean milliseconds per step, the speed-up, and whether the two counts gave the same weights
 to the bit after ``--steps`` steps (some matrix products split their sums by thread, so they may not).
+
+The third arm is the module's own VAE step with ``vae_shards=2`` (the default): the minibatch's two halves, 1 torch
+thread each, one after the other (1 thread: ``update_threads=1``) or in parallel (2 threads: ``update_threads=2``),
+their gradients added in a fixed order, so the weights must be the same with both counts.
 """
 
 from __future__ import annotations
@@ -20,8 +24,11 @@ import threading
 import time
 from typing import Callable
 
+import numpy as np
 import torch as th
+from gymnasium import spaces
 
+from sb3_gocu.curiosity.module import GoalCuriosityModule
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, vae_loss
 
 
@@ -42,6 +49,21 @@ def vae_trainer(batch: int) -> tuple[th.nn.Module, Callable[[], None]]:
     return vae, step
 
 
+def sharded_vae_trainer(batch: int, threads: int) -> tuple[th.nn.Module, Callable[[], None]]:
+    """The module's VAE step (``vae_shards=2``) with ``threads`` shard threads, on 32x32 RGB images."""
+    module = GoalCuriosityModule(spaces.Box(0, 255, (32, 32, 3), np.uint8), vae_batch_size=batch, vae_shards=2,
+                                 update_threads=threads, seed=0)
+    gen = th.Generator().manual_seed(1)
+    x, w = th.rand(batch, 3, 32, 32, generator=gen), th.ones(batch)
+    module.vae.train()
+
+    def step() -> None:
+        stepped, _ = module._vae_step(x, w)
+        assert stepped
+
+    return module.vae, step
+
+
 def predictor_trainer(batch: int) -> tuple[th.nn.Module, Callable[[], None]]:
     th.manual_seed(0)
     predictor = MasteryPredictor(128)
@@ -60,13 +82,13 @@ def predictor_trainer(batch: int) -> tuple[th.nn.Module, Callable[[], None]]:
     return predictor, step
 
 
-def timed(make: Callable[[], tuple[th.nn.Module, Callable[[], None]]], threads: int, steps: int) -> tuple[float, th.Tensor]:
+def timed(make: Callable[[int], tuple[th.nn.Module, Callable[[], None]]], threads: int, steps: int) -> tuple[float, th.Tensor]:
     """ms per step and the final weights, trained in a fresh thread with ``threads`` torch threads."""
     out: dict[str, object] = {}
 
     def work() -> None:
         th.set_num_threads(threads)
-        net, step = make()
+        net, step = make(threads)
         for _ in range(3):
             step()
         t0 = time.perf_counter()
@@ -95,7 +117,11 @@ def main() -> None:
     th.get_num_threads()  # fixes the main thread's count before a worker changes torch's default for new threads
     print("Command: python " + " ".join(sys.argv))
     print(f"machine: {platform.machine()}, torch {th.__version__}, main thread 1 torch thread")
-    arms = {"VAE": lambda: vae_trainer(args.vae_batch), "predictor": lambda: predictor_trainer(args.predictor_batch)}
+    arms = {
+        "VAE": lambda threads: vae_trainer(args.vae_batch),
+        "predictor": lambda threads: predictor_trainer(args.predictor_batch),
+        "VAE 2 parts": lambda threads: sharded_vae_trainer(args.vae_batch, threads),
+    }
     for name, make in arms.items():
         ms: dict[int, list[float]] = {1: [], 2: []}
         weights: dict[int, th.Tensor] = {}
@@ -105,7 +131,7 @@ def main() -> None:
                 ms[threads].append(t)
         one, two = sum(ms[1]) / len(ms[1]), sum(ms[2]) / len(ms[2])
         same = th.equal(weights[1], weights[2])
-        print(f"{name:10s} 1 thread {one:7.1f} ms/step   2 threads {two:7.1f} ms/step   speed-up {one / two:.2f}x   "
+        print(f"{name:11s} 1 thread {one:7.1f} ms/step   2 threads {two:7.1f} ms/step   speed-up {one / two:.2f}x   "
               f"same weights after {args.steps} steps: {same}"
               + ("" if same else f" (largest difference {float((weights[1] - weights[2]).abs().max()):.2e})"))
         assert th.get_num_threads() == 1, "the main thread's count is its own"

@@ -40,7 +40,7 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
-from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, vae_loss
+from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, sharded_vae_gradients, vae_loss
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.scoring import ProcessScorer, eq13_rows, score_rows
 from sb3_gocu.curiosity.reward import (
@@ -227,6 +227,14 @@ class GoalCuriosityModule:
         DoorKey-8x8 sample-efficiency benchmark (seeds 0-2) patience 1 reached a mean return of 0.9 in fewer
         steps and less wall time than 0 on every seed (README, Results)
     :param vae_holdout: fraction of the distinct observations held out for ``vae_patience`` (in (0, 0.5])
+    :param vae_shards: each VAE minibatch is cut into this many parts (1 to ``vae_batch_size``) whose losses and
+        gradients are computed independently, each with 1 torch thread, then added in a fixed order
+        (:func:`~sb3_gocu.curiosity.networks.sharded_vae_gradients`); the held-out loss of ``vae_patience``
+        likewise, by chunks. The parts run in parallel threads (``update_threads`` of them; default: one per
+        part, at most the usable cores), and the values do not depend on how many: a seed gives the same VAE,
+        and the same run, with any thread count. Same objective and gradient as the whole minibatch, summed in
+        another order. 1: the whole minibatch at once with the update's thread count (``update_threads``),
+        whose low bits depend on that count
     :param pretrain_steps: random-policy observations collected to pretrain the VAE before the first rollout
     :param memory_size: capacity of the memory bank
     :param episode_memory: most recent states of the current episode kept per env to draw goals from
@@ -255,7 +263,9 @@ class GoalCuriosityModule:
         Results, "Throughput"). It is opt-in: some matrix products split their sums by thread, so the count
         changes the updates' low bits and with them the run a seed gives, and the 3-seed DoorKey-8x8 figures
         of the defaults were measured with 1; with 2, seed 1 was not solved within 0.8M steps (README). With
-        ``train_in_background`` the update runs beside the rollout, so more threads compete with it
+        ``train_in_background`` the update runs beside the rollout, so more threads compete with it. With
+        ``vae_shards`` > 1 it is instead the number of threads that run the VAE minibatch's parts (1 torch thread
+        each), which does not change the values
     :param scoring_process: score in a worker process rather than a worker thread (``submit(..., background=True)``,
         PPO_GoCu's ``async_scoring``): the process has its own GIL, so the scoring no longer waits for the env
         stepping's, and the env stepping no longer waits for the scoring's. The values are the same to the bit
@@ -315,6 +325,7 @@ class GoalCuriosityModule:
         overlap_ppo_update: bool = True,
         scoring_process: bool | None = None,
         update_threads: int | None = None,
+        vae_shards: int = 1,
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
@@ -324,7 +335,7 @@ class GoalCuriosityModule:
             ("predictor_pairs", predictor_pairs), ("predictor_train_freq", predictor_train_freq), ("embed_dim", embed_dim),
             ("latent_dim", latent_dim), ("vae_batch_size", vae_batch_size), ("vae_epochs", vae_epochs),
             ("vae_train_freq", vae_train_freq), ("pretrain_steps", pretrain_steps), ("memory_size", memory_size),
-            ("episode_memory", episode_memory), ("vae_patience", vae_patience),
+            ("episode_memory", episode_memory), ("vae_patience", vae_patience), ("vae_shards", vae_shards),
         ):
             _check(isinstance(value, (int, np.integer)) and not isinstance(value, bool), f"{name} must be an integer, got {value!r}")
         _check(goal_buffer_size >= 1, f"goal_buffer_size must be >= 1, got {goal_buffer_size}")
@@ -372,6 +383,7 @@ class GoalCuriosityModule:
             update_threads is None or (isinstance(update_threads, (int, np.integer)) and not isinstance(update_threads, bool) and update_threads >= 1),
             f"update_threads must be None or an int >= 1, got {update_threads!r}",
         )
+        _check(1 <= vae_shards <= vae_batch_size, f"vae_shards must be in [1, vae_batch_size={vae_batch_size}], got {vae_shards}")
 
         self.observation_space = observation_space
         self.adapter = ObservationAdapter(observation_space, obs_key=obs_key, image_channels=image_channels)
@@ -402,6 +414,8 @@ class GoalCuriosityModule:
         self.vae_dedupe = vae_dedupe
         self.vae_patience = vae_patience
         self.vae_holdout = float(vae_holdout)
+        self.vae_shards = int(vae_shards)
+        self._shard_pool: ThreadPoolExecutor | None = None
         self.pretrain_steps = pretrain_steps
         self.episode_memory = episode_memory
         self.device = th.device(device)
@@ -839,6 +853,37 @@ class GoalCuriosityModule:
         caller = th.get_num_threads()  # also fixes the caller's count before an update thread changes torch's default
         return caller if self.update_threads is None else self.update_threads
 
+    def _shard_threads(self) -> int:
+        """Threads that run the parts of a sharded VAE step (``vae_shards``)."""
+        if self.update_threads is not None:
+            return min(self.update_threads, self.vae_shards)
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        return max(1, min(self.vae_shards, cores))
+
+    def _run_parts(self, parts: list[Callable[[], Any]]) -> list[Any]:
+        """Run callables with 1 torch thread each, the first in the calling thread and the others in the shard
+        pool (``_shard_threads`` threads in all); their results in order. Grad mode is the caller's in every
+        thread (it is thread-local in torch)."""
+        grad = th.is_grad_enabled()
+
+        def one(fn: Callable[[], Any]) -> Any:
+            with torch_threads(1), th.set_grad_enabled(grad):
+                return fn()
+
+        workers = self._shard_threads() - 1
+        if workers < 1 or len(parts) == 1:
+            return [one(fn) for fn in parts]
+        if self._shard_pool is None or self._shard_pool._max_workers != workers:
+            if self._shard_pool is not None:
+                self._shard_pool.shutdown(wait=True)
+            self._shard_pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gocu-vae-part")
+        futures = [self._shard_pool.submit(one, fn) for fn in parts[1:]]
+        try:
+            first = one(parts[0])
+        finally:
+            rest = [f.result() for f in futures]  # every part ends before the weights move on
+        return [first, *rest]
+
     # VAE update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
     def _prepare_vae(self, epochs: int | None) -> dict[str, Any] | None:
         epochs = self.vae_epochs if epochs is None else epochs
@@ -868,16 +913,42 @@ class GoalCuriosityModule:
 
     @th.no_grad()
     def _vae_val_loss(self, data: np.ndarray, weights: np.ndarray) -> float:
-        """Loss of eq 8 (weighted mean, eval mode: z = mu) on held-out observations."""
+        """Loss of eq 8 (weighted mean, eval mode: z = mu) on held-out observations (by chunks of 1024; with
+        ``vae_shards`` > 1 the chunks run as parts, see :meth:`_run_parts`)."""
         was_training = self.vae.training
         self.vae.eval()
-        total = 0.0
-        for start in range(0, len(data), 1024):
+
+        def chunk(start: int) -> float:
             x = self.adapter.to_tensor(data[start : start + 1024], self.device)
             w = th.from_numpy(weights[start : start + 1024]).to(self.device)
-            total += float(vae_loss(self.vae, x, self.vae_beta, w)[0]) * len(x)
+            return float(vae_loss(self.vae, x, self.vae_beta, w)[0]) * len(x)
+
+        starts = range(0, len(data), 1024)
+        if self.vae_shards > 1:
+            sums = self._run_parts([functools.partial(chunk, start) for start in starts])
+        else:
+            sums = [chunk(start) for start in starts]
+        total = 0.0
+        for value in sums:
+            total += value
         self.vae.train(was_training)
         return total / len(data)
+
+    def _vae_step(self, x: th.Tensor, w: th.Tensor) -> tuple[bool, float]:
+        """One optimiser step of the VAE on a minibatch (``vae_shards``); whether it stepped, and the loss."""
+        if self.vae_shards == 1:
+            loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
+            return self._guarded_step(self.vae, self.vae_optimizer, loss), float(loss.detach())
+        loss, grads = sharded_vae_gradients(self.vae, x, self.vae_beta, w, self._torch_gen, self.vae_shards, self._run_parts)
+        if not th.isfinite(loss):
+            return False, float(loss)
+        self.vae_optimizer.zero_grad()
+        for p, g in zip(self.vae.parameters(), grads):
+            p.grad = g
+        if not self._grads_finite(self.vae):
+            return False, float(loss)
+        self.vae_optimizer.step()
+        return True, float(loss)
 
     def _fit_vae(
         self,
@@ -912,11 +983,11 @@ class GoalCuriosityModule:
                     idx = order[start : start + self.vae_batch_size]
                     x = self.adapter.to_tensor(data[idx], self.device)
                     w = th.from_numpy(weights[idx]).to(self.device)
-                    loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
-                    if not self._guarded_step(self.vae, self.vae_optimizer, loss):
+                    stepped, loss_value = self._vae_step(x, w)
+                    if not stepped:
                         skipped += 1
                         continue
-                    losses.append(loss.item())
+                    losses.append(loss_value)
                 if on_epoch is not None:
                     on_epoch(epoch)
                 if early:

@@ -416,6 +416,7 @@ class GoalCuriosityModule:
         self.vae_holdout = float(vae_holdout)
         self.vae_shards = int(vae_shards)
         self._shard_pool: ThreadPoolExecutor | None = None
+        self._shard_pool_workers = 0
         self.pretrain_steps = pretrain_steps
         self.episode_memory = episode_memory
         self.device = th.device(device)
@@ -873,10 +874,11 @@ class GoalCuriosityModule:
         workers = self._shard_threads() - 1
         if workers < 1 or len(parts) == 1:
             return [one(fn) for fn in parts]
-        if self._shard_pool is None or self._shard_pool._max_workers != workers:
+        if self._shard_pool is None or self._shard_pool_workers != workers:  # update_threads may have been set since
             if self._shard_pool is not None:
                 self._shard_pool.shutdown(wait=True)
             self._shard_pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gocu-vae-part")
+            self._shard_pool_workers = workers
         futures = [self._shard_pool.submit(one, fn) for fn in parts[1:]]
         try:
             first = one(parts[0])

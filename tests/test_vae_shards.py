@@ -149,3 +149,12 @@ def test_one_shard_is_the_whole_minibatch_as_before():
     data = np.random.default_rng(0).random((40, 2), dtype=np.float32)
     out = module._fit_vae(data, np.ones(40, np.float32), 1)
     assert out["losses"] and all(np.isfinite(out["losses"]))
+
+
+def test_bad_noise_and_shard_counts_are_refused():
+    vae = ConvVAE((3, 8, 8), embed_dim=16, latent_dim=3).train()
+    x = th.rand(4, 3, 8, 8)
+    with pytest.raises(ValueError, match=r"noise must have the latent's shape \(4, 3\), got \(4, 2\)"):
+        vae(x, noise=th.zeros(4, 2))
+    with pytest.raises(ValueError, match="shards must be >= 1, got 0"):
+        sharded_vae_gradients(vae, x, 1.0, th.ones(4), None, 0, serially)

@@ -934,27 +934,17 @@ class GoalCuriosityModule:
             sums = self._run_parts([functools.partial(chunk, start) for start in starts])
         else:
             sums = [chunk(start) for start in starts]
-        total = 0.0
-        for value in sums:
-            total += value
         self.vae.train(was_training)
-        return total / len(data)
+        return sum(sums, 0.0) / len(data)
 
     def _vae_step(self, x: th.Tensor, w: th.Tensor) -> tuple[bool, float]:
         """One optimiser step of the VAE on a minibatch (``vae_shards``); whether it stepped, and the loss."""
+        grads = None
         if self.vae_shards == 1:
             loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
-            return self._guarded_step(self.vae, self.vae_optimizer, loss), float(loss.detach())
-        loss, grads = sharded_vae_gradients(self.vae, x, self.vae_beta, w, self._torch_gen, self.vae_shards, self._run_parts)
-        if not th.isfinite(loss):
-            return False, float(loss)
-        self.vae_optimizer.zero_grad()
-        for p, g in zip(self.vae.parameters(), grads):
-            p.grad = g
-        if not self._grads_finite(self.vae):
-            return False, float(loss)
-        self.vae_optimizer.step()
-        return True, float(loss)
+        else:
+            loss, grads = sharded_vae_gradients(self.vae, x, self.vae_beta, w, self._torch_gen, self.vae_shards, self._run_parts)
+        return self._guarded_step(self.vae, self.vae_optimizer, loss, grads), float(loss.detach())
 
     def _fit_vae(
         self,
@@ -1272,12 +1262,22 @@ class GoalCuriosityModule:
         # skipped too); 10x cheaper than the inf-norm, which cost a third of a predictor step
         return not grads or bool(th.isfinite(th.nn.utils.get_total_norm(grads, norm_type=2.0)))
 
-    def _guarded_step(self, network: th.nn.Module, optimizer: th.optim.Optimizer, loss: th.Tensor) -> bool:
-        """One optimiser step on ``loss``, unless the loss or a gradient is non-finite; whether it stepped."""
+    def _guarded_step(
+        self, network: th.nn.Module, optimizer: th.optim.Optimizer, loss: th.Tensor, grads: Sequence[th.Tensor] | None = None
+    ) -> bool:
+        """One optimiser step on ``loss``, unless the loss or a gradient is non-finite; whether it stepped.
+
+        :param grads: the gradient of ``loss``, one tensor per parameter of ``network`` in ``parameters()`` order,
+            when computed already (e.g. by parts); None: by ``loss.backward()``
+        """
         if not th.isfinite(loss):
             return False
         optimizer.zero_grad()
-        loss.backward()
+        if grads is None:
+            loss.backward()
+        else:
+            for p, g in zip(network.parameters(), grads):
+                p.grad = g
         if not self._grads_finite(network):
             return False
         optimizer.step()

@@ -145,6 +145,7 @@ class ScoringTicket:
         self.phi_from: list[tuple[int, ScoringTicket, int]] = []  # (row, earlier ticket, its row): phi being embedded there
         self.computed: np.ndarray | None = None  # eq 13 of the miss rows, when computed in the caller's thread
         self.raw: np.ndarray | None = None  # their raw observations (a copy: the env reuses its buffers)
+        self.observations: np.ndarray | None = None  # every row's raw observation, for a trajectory store that keeps them
         self.encoder: Any = None  # the encoder of the submission (a VAE update swaps the module's)
         self.pending: list[tuple[int, ScoringTicket, int]] = []  # (row, earlier ticket, its row): same state, same episode
         self.env_indices = np.zeros(0, dtype=np.int64)
@@ -239,6 +240,13 @@ class GoalCuriosityModule:
         steps (763,904 with 1) but seed 2 not within 800,768 (README, Results), which the 3-of-3 target of the
         defaults cannot afford. One VAE step on 128 32x32 images: 267 ms with the parts one after the other,
         158 ms in 2 threads (``benchmarks/update_threads.py``)
+    :param refit_predictor_after_vae: at each VAE update, embed the trajectory store again with the new encoder
+        (it keeps the raw observations for that) and retrain the predictor on it right after the VAE, before the new
+        embeddings score a state; the predictor's schedule (``predictor_train_freq``) counts on from there. False:
+        the store is emptied at a VAE update (its embeddings belong to the old encoder) and the predictor is retrained
+        when its schedule says, so until then a predictor fitted to the old embeddings scores the new ones (in a
+        DoorKey-8x8 run its mastery saturates at 1 and r_gc is 0 for that rollout), and its next fit sees only the
+        steps since the VAE update. The store's observations cost ``predictor_train_freq`` raw observations of memory
     :param pretrain_steps: random-policy observations collected to pretrain the VAE before the first rollout
     :param memory_size: capacity of the memory bank
     :param episode_memory: most recent states of the current episode kept per env to draw goals from
@@ -330,6 +338,7 @@ class GoalCuriosityModule:
         scoring_process: bool | None = None,
         update_threads: int | None = None,
         vae_shards: int = 1,
+        refit_predictor_after_vae: bool = False,
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
@@ -419,6 +428,8 @@ class GoalCuriosityModule:
         self.vae_patience = vae_patience
         self.vae_holdout = float(vae_holdout)
         self.vae_shards = int(vae_shards)
+        _check(isinstance(refit_predictor_after_vae, (bool, np.bool_)), f"refit_predictor_after_vae must be True or False, got {refit_predictor_after_vae!r}")
+        self.refit_predictor_after_vae = bool(refit_predictor_after_vae)
         self._shard_pool: ThreadPoolExecutor | None = None
         self._shard_pool_workers = 0
         self.pretrain_steps = pretrain_steps
@@ -447,7 +458,10 @@ class GoalCuriosityModule:
         raw_shape, raw_dtype = self.adapter.raw_shape, self.adapter.raw_dtype
         self.goal_buffer = GoalBuffer(goal_buffer_size, raw_shape, raw_dtype, embed_dim, goal_novelty)
         self.memory = MemoryBank(memory_size, raw_shape, raw_dtype)
-        self.trajectories = TrajectoryStore(predictor_train_freq, embed_dim, min_per_env=2 * max_distance)
+        self.trajectories = TrajectoryStore(
+            predictor_train_freq, embed_dim, min_per_env=2 * max_distance,
+            obs_shape=raw_shape if self.refit_predictor_after_vae else None, obs_dtype=raw_dtype,
+        )
         self.normalizer = IntrinsicReturnNormalizer(intrinsic_gamma)
 
         # per-env state
@@ -506,11 +520,14 @@ class GoalCuriosityModule:
 
     # ------------------------------------------------------------------ embedding and scoring
     @th.inference_mode()
-    def embed(self, raw: np.ndarray, batch_size: int = 1024) -> th.Tensor:
-        """phi of a batch of raw observations (as kept in the buffers), (n, embed_dim)."""
+    def embed(self, raw: np.ndarray, batch_size: int = 1024, encoder: th.nn.Module | None = None) -> th.Tensor:
+        """phi of a batch of raw observations (as kept in the buffers), (n, embed_dim).
+
+        :param encoder: the VAE to embed with; None: the frozen copy inference uses"""
         if len(raw) == 0:
             return th.zeros(0, self.goal_buffer.embeddings.shape[1])
-        out = [self._encoder.embed(self.adapter.to_tensor(raw[i : i + batch_size], self.device)).cpu() for i in range(0, len(raw), batch_size)]
+        encoder = self._encoder if encoder is None else encoder
+        out = [encoder.embed(self.adapter.to_tensor(raw[i : i + batch_size], self.device)).cpu() for i in range(0, len(raw), batch_size)]
         return th.cat(out)
 
     @th.inference_mode()
@@ -752,6 +769,8 @@ class GoalCuriosityModule:
         keys = [self._key(x) for x in raw]
         ticket = self._lookup(raw, env_indices, keys)
         ticket.recording = self.recording
+        if self.recording and self.trajectories.keeps_observations:
+            ticket.observations = np.array(raw, copy=True)
         if self.revisit_decay != "none":
             ticket.factor = revisit_factor(self._count_visits(keys, env_indices), self.revisit_decay)
         if self.recording:
@@ -812,7 +831,7 @@ class GoalCuriosityModule:
             computed = ticket.computed
         self._commit(ticket, computed)
         if ticket.recording:  # phi of every row is known now
-            self.trajectories.add(th.from_numpy(ticket.phi), ticket.episode_ids, ticket.env_indices)
+            self.trajectories.add(th.from_numpy(ticket.phi), ticket.episode_ids, ticket.env_indices, ticket.observations)
         rewards = ticket.rewards
         if not np.all(np.isfinite(rewards)):
             # a broken network must not poison the policy's buffer: no bonus for these states
@@ -917,6 +936,34 @@ class GoalCuriosityModule:
             job.update(data=data[train], weights=weights[train], val_data=data[val], val_weights=weights[val])
         return job
 
+    def _prepare_vae_update(self, epochs: int | None) -> dict[str, Any] | None:
+        """A VAE update's job (:meth:`_prepare_vae`) and, with ``refit_predictor_after_vae``, the predictor's
+        retraining after it (``"refit"``: pairs drawn now from a copy of the trajectory store). Run it with
+        :meth:`_fit_vae_job`, take it into use with :meth:`_finish_vae`."""
+        job = self._prepare_vae(epochs)
+        if job is not None and self.refit_predictor_after_vae:
+            self.collect_all()  # the trajectory store takes a state's phi when its ticket is collected
+            draw = self.trajectories.draw_pairs(self.predictor_pairs, self.max_distance, self.rng, first_visit=self.first_visit_distance)
+            self.last_predictor_update = self.n_recorded_steps
+            job["refit"] = {"store": self.trajectories.copy(), "draw": draw} if len(draw[0]) >= 2 else None
+        return job
+
+    def _fit_vae_job(self, job: dict[str, Any]) -> dict[str, Any]:
+        """Fit the VAE (any thread); then, with a ``"refit"``, embed the copied trajectory store with the fitted VAE
+        (when it changed) and fit the predictor to the drawn pairs' new embeddings (``fit["refit"]``)."""
+        fit = self._fit_vae(**{k: v for k, v in job.items() if k != "refit"})
+        refit = job.get("refit")
+        if refit is not None:
+            with torch_threads(job["threads"]):
+                t0 = time.perf_counter()
+                store: TrajectoryStore = refit["store"]
+                embeddings = store.embedded(functools.partial(self.embed, encoder=self.vae)) if fit["best_epoch"] > 0 else None
+                fit["time"] += time.perf_counter() - t0  # the VAE's cost
+                pairs = self._predictor_job(*store.pairs(refit["draw"], embeddings), job["threads"])
+                fit["refit"] = {"embeddings": embeddings, "count": store.count,
+                                "fit": None if pairs is None else self._fit_predictor(**pairs)}
+        return fit
+
     @th.no_grad()
     def _vae_val_loss(self, data: np.ndarray, weights: np.ndarray) -> float:
         """Loss of eq 8 (weighted mean, eval mode: z = mu) on held-out observations (by chunks of 1024; with
@@ -1003,12 +1050,17 @@ class GoalCuriosityModule:
     def _finish_vae(self, fit: dict[str, Any]) -> dict[str, float]:
         self.collect_all()
         t0 = time.perf_counter()
-        self._guard_update("vae", self.vae, self.vae_optimizer, fit["snapshot"], fit["skipped"])
+        rolled_back = self._guard_update("vae", self.vae, self.vae_optimizer, fit["snapshot"], fit["skipped"])
+        refit = fit.get("refit")
         if fit["best_epoch"] > 0:  # otherwise the VAE kept its weights: every embedding is still valid
             self._sync_encoder()
             self._phi_cache.clear()
             self.goal_buffer.refresh(self.embed)
-            self.trajectories.clear()  # stored embeddings belong to the old encoder
+            if not self.refit_predictor_after_vae:
+                self.trajectories.clear()  # stored embeddings belong to the old encoder
+            elif not rolled_back:  # the store's embeddings, renewed (rolled back: the old encoder's are still valid)
+                renewed = refit is not None and refit["embeddings"] is not None and np.array_equal(refit["count"], self.trajectories.count)
+                self.trajectories.embeddings = refit["embeddings"] if renewed else self.trajectories.embedded(self.embed)
             self._refresh_active_goals()
         dt = fit["time"] + time.perf_counter() - t0
         self.time_training += dt
@@ -1023,6 +1075,12 @@ class GoalCuriosityModule:
             "vae_time": dt,
         }
         self.stats.update(out)
+        if refit is not None and refit["fit"] is not None:
+            if rolled_back:  # fitted to the embeddings of a VAE that is not kept
+                self.predictor.load_state_dict(refit["fit"]["snapshot"][0])
+                self.predictor_optimizer.load_state_dict(refit["fit"]["snapshot"][1])
+            else:
+                out.update(self._finish_predictor(refit["fit"]))
         return out
 
     def train_vae(self, epochs: int | None = None) -> dict[str, float]:
@@ -1032,8 +1090,8 @@ class GoalCuriosityModule:
         :return: statistics of the update
         """
         self.finish_background_update()
-        job = self._prepare_vae(epochs)
-        return {} if job is None else self._finish_vae(self._fit_vae(**job))
+        job = self._prepare_vae_update(epochs)
+        return {} if job is None else self._finish_vae(self._fit_vae_job(job))
 
     def pretrain(self) -> dict[str, float]:
         """Train the VAE on what the memory bank holds (the random-policy observations) and mark the module
@@ -1050,6 +1108,11 @@ class GoalCuriosityModule:
             self.predictor_pairs, self.max_distance, self.rng, first_visit=self.first_visit_distance
         )
         self.last_predictor_update = self.n_recorded_steps
+        return self._predictor_job(phi_s, phi_g, dist, self._update_thread_count())
+
+    def _predictor_job(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor, threads: int) -> dict[str, Any] | None:
+        """The arguments of :meth:`_fit_predictor` for drawn pairs: non-finite embeddings dropped, duplicates merged
+        (``predictor_dedupe``); None when fewer than two pairs are left."""
         keep = th.isfinite(phi_s).all(1) & th.isfinite(phi_g).all(1)  # a broken VAE's embeddings teach nothing
         phi_s, phi_g, dist = phi_s[keep], phi_g[keep], dist[keep]
         if len(phi_s) < 2:
@@ -1065,7 +1128,7 @@ class GoalCuriosityModule:
             phi_s, phi_g, dist = phi_s[first], phi_g[first], dist[first]
             weights = th.from_numpy(counts * (len(counts) / counts.sum())).float()  # mean 1 over the distinct pairs
         return {"phi_s": phi_s.to(self.device), "phi_g": phi_g.to(self.device), "dist": dist.to(self.device),
-                "weights": weights.to(self.device), "drawn": drawn, "threads": self._update_thread_count()}
+                "weights": weights.to(self.device), "drawn": drawn, "threads": threads}
 
     @th.no_grad()
     def label_pairs(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor) -> th.Tensor:
@@ -1164,14 +1227,17 @@ class GoalCuriosityModule:
         self._unreported = {}
         out.update(self.finish_background_update())
         out["goals_added"] = float(self.add_finished_episode_goals())
-        # predictor first: a VAE update makes the stored embeddings (the predictor's pairs) stale
+        # predictor first: a VAE update makes the stored embeddings (the predictor's pairs) stale; with
+        # refit_predictor_after_vae the VAE's job retrains the predictor after it instead
         jobs: list[tuple[str, dict[str, Any]]] = []
-        if self.n_recorded_steps - self.last_predictor_update >= self.predictor_train_freq:
+        vae_due = self.n_recorded_steps - self.last_vae_update >= self.vae_train_freq
+        refit = vae_due and self.refit_predictor_after_vae
+        if not refit and self.n_recorded_steps - self.last_predictor_update >= self.predictor_train_freq:
             job = self._prepare_predictor()
             if job is not None:
                 jobs.append(("predictor", job))
-        if self.n_recorded_steps - self.last_vae_update >= self.vae_train_freq:
-            job = self._prepare_vae(None)
+        if vae_due:
+            job = self._prepare_vae_update(None)
             if job is not None:
                 jobs.append(("vae", job))
         if not jobs:
@@ -1189,12 +1255,12 @@ class GoalCuriosityModule:
     def _run_job(self, name: str, job: dict[str, Any]) -> dict[str, float]:
         if name == "predictor":
             return self._finish_predictor(self._fit_predictor(**job))
-        return self._finish_vae(self._fit_vae(**job))
+        return self._finish_vae(self._fit_vae_job(job))
 
     def _background(self) -> None:
         try:
             for name, job in self._job_result["jobs"]:
-                self._job_result["fits"].append((name, self._fit_predictor(**job) if name == "predictor" else self._fit_vae(**job)))
+                self._job_result["fits"].append((name, self._fit_predictor(**job) if name == "predictor" else self._fit_vae_job(job)))
         except BaseException as error:  # re-raised in the caller's thread by finish_background_update
             self._job_result["error"] = error
 
@@ -1397,7 +1463,8 @@ class GoalCuriosityModule:
             self._goal_parts = self._goal_parts[:0]
             self._episode_ids = self._episode_ids[:0]
             self._episodes, self._reward_cache, self._visit_counts, self._pending = [], [], [], []
-            self.trajectories = TrajectoryStore(self.trajectories.total_capacity, self.trajectories.embed_dim, self.trajectories.min_per_env)
+            t = self.trajectories
+            self.trajectories = TrajectoryStore(t.total_capacity, t.embed_dim, t.min_per_env, t.obs_shape, t.obs_dtype)
             self.normalizer.returns = self.normalizer.returns[:0]
             rng_state = self.rng.bit_generator.state
             self.ensure_envs(n)  # allocates; the goals it draws are overwritten below

@@ -10,7 +10,7 @@ with 1 and with 2 torch threads while the main thread keeps 1, ``--repeats`` tim
 steps. It prints the mean milliseconds per step, the speed-up, and whether the two counts gave the same weights
 to the bit after ``--steps`` steps (some matrix products split their sums by thread, so they may not).
 
-The third arm is the module's own VAE step with ``vae_shards=2`` (the default): the minibatch's two halves, 1 torch
+The third arm is the module's own VAE step with ``vae_shards=2`` (opt-in; the default is 1): the two halves, 1 torch
 thread each, one after the other (1 thread: ``update_threads=1``) or in parallel (2 threads: ``update_threads=2``),
 their gradients added in a fixed order, so the weights must be the same with both counts.
 """

@@ -186,3 +186,22 @@ def test_refit_setting_is_checked_and_survives_a_save_and_load():
     assert np.array_equal(other.trajectories.observations, module.trajectories.observations)
     assert th.equal(other.trajectories.embeddings, module.trajectories.embeddings)
     assert np.array_equal(other.trajectories.count, module.trajectories.count)
+
+
+def test_pretraining_is_followed_by_a_predictor_fit_on_the_random_policy_trajectories():
+    space = ChainEnv().observation_space
+    modules = [GoalCuriosityModule(space, **{**SMALL_CURIOSITY, "refit_predictor_after_vae": v}, seed=1) for v in (True, False)]
+    rng = np.random.default_rng(2)
+    batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(64)]
+    for module in modules:
+        module.recording = True
+        for obs, dones in batches:
+            module.step(obs, dones)
+    refit, plain = modules
+    before = {k: v.clone() for k, v in refit.predictor.state_dict().items()}
+    out = refit.pretrain()
+    assert "vae_loss" in out and "predictor_loss" in out and len(refit.trajectories) == 128
+    assert any(not th.equal(v, refit.predictor.state_dict()[k]) for k, v in before.items())
+    assert refit.last_predictor_update == refit.n_recorded_steps == 128
+    out_plain = plain.pretrain()
+    assert "predictor_loss" not in out_plain and len(plain.trajectories) == 0

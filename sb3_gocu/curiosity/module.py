@@ -242,7 +242,8 @@ class GoalCuriosityModule:
         158 ms in 2 threads (``benchmarks/update_threads.py``)
     :param refit_predictor_after_vae: at each VAE update, embed the trajectory store again with the new encoder
         (it keeps the raw observations for that) and retrain the predictor on it right after the VAE, before the new
-        embeddings score a state; the predictor's schedule (``predictor_train_freq``) counts on from there. False:
+        embeddings score a state; the predictor's schedule (``predictor_train_freq``) counts on from there. This
+        includes pretraining's VAE update: the predictor's first fit is then on the random-policy trajectories. False:
         the store is emptied at a VAE update (its embeddings belong to the old encoder) and the predictor is retrained
         when its schedule says, so until then a predictor fitted to the old embeddings scores the new ones (in a
         DoorKey-8x8 run its mastery saturates at 1 and r_gc is 0 for that rollout), and its next fit sees only the

@@ -49,6 +49,13 @@ def _one_thread():
     yield
 
 
+def record_steps(module, batches) -> None:
+    """Step a curiosity module through ``batches`` of (observations, dones), recording them as in training."""
+    module.recording = True
+    for obs, dones in batches:
+        module.step(obs, dones)
+
+
 SMALL_CURIOSITY = dict(
     n_goals=4,
     goal_buffer_size=32,

@@ -11,7 +11,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_gocu import GoalCuriosityModule, GoCuCallback, GoCuVecEnvWrapper, GoCuWrapper, PPO_GoCu
 
-from conftest import SMALL_CURIOSITY, ChainEnv
+from conftest import SMALL_CURIOSITY, ChainEnv, record_steps
 
 
 def chain_venv(n_envs=2, seed=0):
@@ -127,9 +127,7 @@ def in_place_and_variant_after_steps(**variant: bool) -> tuple[GoalCuriosityModu
     rng = np.random.default_rng(0)
     batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(160)]
     for module in modules:
-        module.recording = True
-        for obs, dones in batches:
-            module.step(obs, dones)
+        record_steps(module, batches)
     return modules
 
 

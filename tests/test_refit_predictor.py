@@ -6,7 +6,7 @@ import pytest
 import torch as th
 
 from sb3_gocu.curiosity import GoalCuriosityModule, TrajectoryStore
-from tests.conftest import SMALL_CURIOSITY, ChainEnv
+from tests.conftest import SMALL_CURIOSITY, ChainEnv, record_steps
 
 
 def filled_store(keep_observations: bool = True) -> TrajectoryStore:
@@ -83,11 +83,9 @@ def modules_after_steps(*variants: dict) -> list[GoalCuriosityModule]:
     values = rng.random((12, 2)).astype(np.float32)
     batches = [(values[rng.integers(12, size=2)], rng.random(2) < 0.1) for _ in range(300)]
     for module in modules:
-        module.recording = True
-        for i, (obs, dones) in enumerate(batches):
-            module.step(obs, dones)
-            if i == 250:
-                module.maybe_train()  # a predictor update, so that the next one is not due with the VAE's
+        record_steps(module, batches[:251])
+        module.maybe_train()  # a predictor update, so that the next one is not due with the VAE's
+        record_steps(module, batches[251:])
     return modules
 
 
@@ -194,9 +192,7 @@ def test_pretraining_is_followed_by_a_predictor_fit_on_the_random_policy_traject
     rng = np.random.default_rng(2)
     batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(64)]
     for module in modules:
-        module.recording = True
-        for obs, dones in batches:
-            module.step(obs, dones)
+        record_steps(module, batches)
     refit, plain = modules
     before = {k: v.clone() for k, v in refit.predictor.state_dict().items()}
     out = refit.pretrain()

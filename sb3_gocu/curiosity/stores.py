@@ -3,10 +3,34 @@ training pairs (s_t, s_{t+y}) are drawn from (section 4.2.3)."""
 
 from __future__ import annotations
 
+import hashlib
 from typing import Callable
 
 import numpy as np
 import torch as th
+
+
+def observation_key(x: np.ndarray) -> bytes:
+    """A short key of one raw observation's bytes (16-byte BLAKE2b), for memos and de-duplication."""
+    return hashlib.blake2b(np.ascontiguousarray(x).data, digest_size=16).digest()
+
+
+def distinct_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``rows`` by :func:`observation_key` (hashing rows is ~30x faster than
+    ``np.unique(axis=0)`` on images).
+
+    :return: the index of each distinct row's first occurrence, in order of first occurrence, and for every row
+        the position of its distinct row in that list (``rows[first][inverse]`` equals ``rows``)
+    """
+    index: dict[bytes, int] = {}
+    first: list[int] = []
+    inverse = np.empty(len(rows), dtype=np.int64)
+    for i, x in enumerate(rows):
+        j = index.setdefault(observation_key(x), len(first))
+        if j == len(first):
+            first.append(i)
+        inverse[i] = j
+    return np.asarray(first, dtype=np.int64), inverse
 
 
 class MemoryBank:
@@ -148,15 +172,8 @@ class TrajectoryStore:
         if len(t) == 0:
             return out
         raw = self.observations[t, e]
-        index: dict[bytes, int] = {}
-        distinct: list[int] = []  # the first row of each distinct observation
-        inverse = np.empty(len(raw), dtype=np.int64)
-        for i, x in enumerate(raw):
-            j = index.setdefault(x.tobytes(), len(distinct))
-            if j == len(distinct):
-                distinct.append(i)
-            inverse[i] = j
-        phi = embed(raw[np.asarray(distinct, dtype=np.int64)])
+        first, inverse = distinct_rows(raw)
+        phi = embed(raw[first])
         out[th.from_numpy(t), th.from_numpy(e)] = phi[th.from_numpy(inverse)].to(out.dtype)
         return out
 

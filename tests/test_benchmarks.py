@@ -250,3 +250,56 @@ def test_compare_runs_finds_the_first_differing_row(two_runs, tmp_path, capsys):
     assert exit_info.value.code == 1
     printed = capsys.readouterr().out
     assert "rows differing: 1" in printed and f"first at {rows[2]['steps']} steps: intrinsic_mean" in printed
+
+
+@pytest.fixture(scope="module")
+def ep():
+    return load_script("embedding_phases", "benchmarks/embedding_phases.py")
+
+
+def test_embedding_phases_views_change_only_where_the_state_does(ep):
+    """DoorKey-8x8, layout 0: the carried key changes every pose's view, and only in the bottom row of cells (the
+    agent's own cell); the key on the floor and the open door change only the poses that see them; one step's
+    pixel distance is the direct computation."""
+    views = ep.layout_views("GoCu/DoorKey-8x8-v0", 0)
+    assert set(views) == set(ep.STATES) and all(set(v) == set(views["bare"]) for v in views.values())
+    cell = 32 // 7 + 1  # the 7x7 view resized to 32x32: the agent's row is within the bottom 5 pixel rows
+    for pose in views["bare"]:
+        diff = np.abs(views["carried"][pose].astype(int) - views["bare"][pose]).sum(-1)
+        assert diff.any() and not diff[: 32 - cell].any()
+    seen = [not np.array_equal(views["floor_key"][p], views["bare"][p]) for p in views["bare"]]
+    opened = [not np.array_equal(views["door_open"][p], views["carried"][p]) for p in views["bare"]]
+    assert 0 < sum(seen) < len(seen) and 0 < sum(opened) < len(opened)
+    d = ep.distances(views, ep.pixels)
+    assert len(d["carried"]) == len(views["bare"]) and len(d["floor_key"]) == sum(seen) and len(d["door_open"]) == sum(opened)
+    first, nxt = next((p, q) for p in views["bare"] for q in ((p[0] + 1, p[1], p[2]), (p[0], p[1] + 1, p[2])) if q in views["bare"])
+    a, b = views["bare"][first], views["bare"][nxt]
+    assert np.linalg.norm(ep.pixels(a[None]) - ep.pixels(b[None])) == pytest.approx(d["step"][0])
+    s = ep.summarise([d])
+    assert s["carried/step"] == pytest.approx(np.median(d["carried"]) / np.median(d["step"]))
+
+
+def test_embedding_phases_refit_leaves_the_model_as_it_was(ep, two_runs):
+    """A refit retrains a copy on the memory bank (another phi), a fresh one takes the asked latent size, and the
+    model's VAE, optimiser and settings are the ones it had."""
+    out, _ = two_runs
+    model = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
+    from sb3_gocu import PPO_GoCu
+
+    module = PPO_GoCu.load(model, device="cpu").curiosity
+    before = {k: v.clone() for k, v in module.vae.state_dict().items()}
+    optimiser, beta, last = module.vae_optimizer, module.vae_beta, module.last_vae_update
+    vae, fit = ep.refit_vae(module, {"vae_epochs": 2, "vae_beta": 0.5})
+    assert fit["epochs_run"] == 2 and vae is not module.vae
+    assert any(not th.equal(before[k], v) for k, v in vae.state_dict().items())
+    assert all(th.equal(before[k], v) for k, v in module.vae.state_dict().items())
+    assert module.vae_optimizer is optimiser and module.vae_beta == beta and module.last_vae_update == last
+    fresh, _ = ep.refit_vae(module, {"vae_epochs": 1, "latent_dim": 3})
+    assert fresh.mu.out_features == 3
+    with pytest.raises(ValueError, match="vae_lr"):
+        ep.refit_vae(module, {"vae_lr": 1e-3})
+    r = ep.measure(str(model), "GoCu/DoorKey-8x8-v0", 1, [{"vae_epochs": 1}])  # same 32x32 views, more cells than 5x5
+    assert r["steps"] == 2048 and len(r["refits"]) == 1
+    for key in ("pixels", "phi"):
+        assert r[key]["step"] > 0 and r[key]["carried/step"] == pytest.approx(r[key]["carried"] / r[key]["step"])
+    assert r["refits"][0]["step"] != r["phi"]["step"]

@@ -329,7 +329,29 @@ def test_vae_holdout_split_and_patience_zero():
     assert fit["epochs_run"] == fit["best_epoch"] == 3
 
 
+def test_pretraining_has_its_own_patience():
+    """vae_pretrain_patience=0: the pretraining runs every epoch on the whole bank (no held-out loss measured), and
+    the updates after it stop early with vae_patience; None: the pretraining stops early too."""
+    module = recorded_module(vae_patience=1, vae_pretrain_patience=0, vae_epochs=4)
+    script = iter([10.0, 11.0, 12.0])
+    module._vae_val_loss = lambda data, weights: next(script)
+    out = module.pretrain()
+    assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (4, 4) and module.pretrained
+    assert next(script) == 10.0, "no held-out loss measured in the pretraining"
+    script = iter([10.0, 11.0, 12.0])
+    out = module.train_vae()
+    assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (1, 0), "the later update: patience 1"
+    module = recorded_module(vae_patience=1, vae_epochs=4)
+    assert module.vae_pretrain_patience == 1
+    script = iter([10.0, 11.0, 12.0])
+    module._vae_val_loss = lambda data, weights: next(script)
+    out = module.pretrain()
+    assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (1, 0)
+
+
 @pytest.mark.parametrize("kwargs, message", [
+    (dict(vae_pretrain_patience=-1), r"vae_pretrain_patience must be None or an integer >= 0, got -1"),
+    (dict(vae_pretrain_patience=True), r"vae_pretrain_patience must be None or an integer >= 0, got True"),
     (dict(vae_patience=-1), r"vae_patience must be >= 0, got -1"),
     (dict(vae_patience=1.5), r"vae_patience must be an integer"),
     (dict(vae_holdout=0.0), r"vae_holdout must be in \(0, 0.5\], got 0.0"),

@@ -226,6 +226,10 @@ class GoalCuriosityModule:
         on DoorKey-8x8 does not improve at all at 600k steps (its 20 epochs only move phi at random); on the
         DoorKey-8x8 sample-efficiency benchmark (seeds 0-2) patience 1 reached a mean return of 0.9 in fewer
         steps and less wall time than 0 on every seed (README, Results)
+    :param vae_pretrain_patience: ``vae_patience`` of the pretraining's VAE update (on the random-policy
+        observations); None: ``vae_patience``. With patience 1 the pretraining stops after 5 to 7 of its 20 epochs on
+        DoorKey-8x8, at a held-out loss of 1240 to 1507 against 932 after all 20 (``benchmarks/pretrain_epochs.py``);
+        0 trains it all ``vae_epochs`` epochs
     :param vae_holdout: fraction of the distinct observations held out for ``vae_patience`` (in (0, 0.5])
     :param vae_shards: each VAE minibatch is cut into this many parts (1 to ``vae_batch_size``) whose losses and
         gradients are computed independently, each with 1 torch thread, then added in a fixed order
@@ -329,6 +333,7 @@ class GoalCuriosityModule:
         vae_train_freq: int = 100_000,
         vae_dedupe: bool = True,
         vae_patience: int = 1,
+        vae_pretrain_patience: int | None = None,
         vae_holdout: float = 0.1,
         pretrain_steps: int = 10_000,
         memory_size: int = 10_000,
@@ -384,6 +389,11 @@ class GoalCuriosityModule:
             ("predictor_epochs", predictor_epochs), ("vae_epochs", vae_epochs), ("pretrain_steps", pretrain_steps), ("vae_patience", vae_patience),
         ):
             _check(value >= 0, f"{name} must be >= 0, got {value}")
+        _check(
+            vae_pretrain_patience is None
+            or (isinstance(vae_pretrain_patience, (int, np.integer)) and not isinstance(vae_pretrain_patience, bool) and vae_pretrain_patience >= 0),
+            f"vae_pretrain_patience must be None or an integer >= 0, got {vae_pretrain_patience!r}",
+        )
         for name, value in (("predictor_lr", predictor_lr), ("vae_lr", vae_lr)):
             _check(value > 0, f"{name} must be > 0, got {value}")
         _check(vae_beta >= 0, f"vae_beta must be >= 0, got {vae_beta}")
@@ -428,6 +438,7 @@ class GoalCuriosityModule:
         self.vae_train_freq = vae_train_freq
         self.vae_dedupe = vae_dedupe
         self.vae_patience = vae_patience
+        self.vae_pretrain_patience = vae_patience if vae_pretrain_patience is None else int(vae_pretrain_patience)
         self.vae_holdout = float(vae_holdout)
         self.vae_shards = int(vae_shards)
         _check(isinstance(refit_predictor_after_vae, (bool, np.bool_)), f"refit_predictor_after_vae must be True or False, got {refit_predictor_after_vae!r}")
@@ -910,8 +921,9 @@ class GoalCuriosityModule:
         return [first, *rest]
 
     # VAE update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
-    def _prepare_vae(self, epochs: int | None) -> dict[str, Any] | None:
+    def _prepare_vae(self, epochs: int | None, patience: int | None = None) -> dict[str, Any] | None:
         epochs = self.vae_epochs if epochs is None else epochs
+        patience = self.vae_patience if patience is None else patience
         data = self.memory.observations[: self.memory.size].copy()
         if len(data) == 0 or epochs == 0:
             return None
@@ -922,19 +934,19 @@ class GoalCuriosityModule:
             c = np.bincount(inverse, minlength=len(first)).astype(np.float64)
             weights = (c * len(c) / c.sum()).astype(np.float32)
         self.last_vae_update = self.n_recorded_steps
-        job: dict[str, Any] = {"data": data, "weights": weights, "epochs": epochs, "threads": self._update_thread_count()}
+        job: dict[str, Any] = {"data": data, "weights": weights, "epochs": epochs, "threads": self._update_thread_count(), "patience": patience}
         n_val = int(round(self.vae_holdout * len(data)))
-        if self.vae_patience > 0 and n_val >= 1:
+        if patience > 0 and n_val >= 1:
             order = self.rng.permutation(len(data))
             val, train = np.sort(order[:n_val]), np.sort(order[n_val:])
             job.update(data=data[train], weights=weights[train], val_data=data[val], val_weights=weights[val])
         return job
 
-    def _prepare_vae_update(self, epochs: int | None) -> dict[str, Any] | None:
+    def _prepare_vae_update(self, epochs: int | None, patience: int | None = None) -> dict[str, Any] | None:
         """A VAE update's job (:meth:`_prepare_vae`) and, with ``refit_predictor_after_vae``, the predictor's
         retraining after it (``"refit"``: pairs drawn now from a copy of the trajectory store). Run it with
         :meth:`_fit_vae_job`, take it into use with :meth:`_finish_vae`."""
-        job = self._prepare_vae(epochs)
+        job = self._prepare_vae(epochs, patience)
         if job is not None and self.refit_predictor_after_vae:
             self.collect_all()  # the trajectory store takes a state's phi when its ticket is collected
             draw = self.trajectories.draw_pairs(self.predictor_pairs, self.max_distance, self.rng, first_visit=self.first_visit_distance)
@@ -996,6 +1008,7 @@ class GoalCuriosityModule:
         val_weights: np.ndarray | None = None,
         on_epoch: Callable[[int], None] | None = None,
         threads: int | None = None,
+        patience: int | None = None,
     ) -> dict[str, Any]:
         """Fit the VAE (eq 8) to ``data`` (weighted by multiplicity) for at most ``epochs`` epochs.
 
@@ -1003,13 +1016,15 @@ class GoalCuriosityModule:
         :param val_weights: their multiplicities
         :param on_epoch: called with the epoch number after each epoch (the VAE is in train mode), for probes
         :param threads: torch threads of the fit (None: the calling thread's)
+        :param patience: early stopping's patience (None: ``vae_patience``)
         """
+        patience = self.vae_patience if patience is None else patience
         with torch_threads(threads):
             t0 = time.perf_counter()
             snapshot = self._snapshot(self.vae, self.vae_optimizer)
-            early = val_data is not None and val_weights is not None and self.vae_patience > 0
+            early = val_data is not None and val_weights is not None and patience > 0
             start_loss = self._vae_val_loss(val_data, val_weights) if early else float("nan")
-            stopping, best_state = EarlyStopping(start_loss, self.vae_patience), None
+            stopping, best_state = EarlyStopping(start_loss, patience), None
             self.vae.train()
             losses, skipped = [], 0
             n = len(data)
@@ -1076,20 +1091,21 @@ class GoalCuriosityModule:
                 out.update(self._finish_predictor(refit["fit"]))
         return out
 
-    def train_vae(self, epochs: int | None = None) -> dict[str, float]:
+    def train_vae(self, epochs: int | None = None, patience: int | None = None) -> dict[str, float]:
         """Train the VAE on the memory bank (eq 8), then re-embed goals and drop stale embeddings.
 
         :param epochs: passes over the memory bank (default ``vae_epochs``)
+        :param patience: early stopping's patience (default ``vae_patience``; 0: all ``epochs``)
         :return: statistics of the update
         """
         self.finish_background_update()
-        job = self._prepare_vae_update(epochs)
+        job = self._prepare_vae_update(epochs, patience)
         return {} if job is None else self._finish_vae(self._fit_vae_job(job))
 
     def pretrain(self) -> dict[str, float]:
         """Train the VAE on what the memory bank holds (the random-policy observations) and mark the module
         pretrained."""
-        out = self.train_vae()
+        out = self.train_vae(patience=self.vae_pretrain_patience)
         self.pretrained = True
         self.last_predictor_update = self.n_recorded_steps  # P_m counts from the first rollout
         return out

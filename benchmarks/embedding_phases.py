@@ -78,15 +78,12 @@ def layout_views(env_id: str, seed: int) -> dict[str, dict[tuple[int, int, int],
     start = tuple(int(v) for v in base.agent_pos)
     set_state(base, "carried", objects)
     reach = curiosity_map.reachable_cells(base, start)
-    poses = [(x, y, d) for y in range(base.height) for x in range(door_x) if reach[y, x] and (x, y) != key_pos
-             for d in range(curiosity_map.DIRECTIONS)]
+    cells = [(x, y) for y in range(base.height) for x in range(door_x) if reach[y, x] and (x, y) != key_pos]
     views: dict[str, dict[tuple[int, int, int], np.ndarray]] = {}
     for state in STATES:
         set_state(base, state, objects)
-        views[state] = {}
-        for x, y, d in poses:
-            base.agent_pos, base.agent_dir = (x, y), d
-            views[state][(x, y, d)] = curiosity_map.render_observation(env)
+        obs = curiosity_map.observations_at(env, cells)
+        views[state] = {(x, y, d): obs[i, d] for i, (x, y) in enumerate(cells) for d in range(curiosity_map.DIRECTIONS)}
     env.close()
     return views
 
@@ -132,15 +129,22 @@ def embedding(module: Any, encoder: th.nn.Module | None = None) -> Callable[[np.
     return features
 
 
+def check_refit(spec: Any) -> None:
+    """A ``--refit`` setting is a dict with keys among :data:`REFIT_KEYS` (ValueError otherwise)."""
+    if not isinstance(spec, dict):
+        raise ValueError(f"--refit takes JSON dicts, got {spec!r}")
+    unknown = set(spec) - REFIT_KEYS
+    if unknown:
+        raise ValueError(f"--refit keys must be among {sorted(REFIT_KEYS)}, got {sorted(unknown)}")
+
+
 def refit_vae(module: Any, spec: dict[str, Any], seed: int = 0) -> tuple[th.nn.Module, dict[str, Any]]:
     """A VAE retrained on ``module``'s memory bank as a VAE update would (:meth:`_prepare_vae` and :meth:`_fit_vae`
     of the module), with the settings of ``spec``; the module's own VAE, optimiser and settings are put back.
 
     :return: the retrained VAE and the fit's record (``epochs_run``, ``time``, ``losses``, ...)
     """
-    unknown = set(spec) - REFIT_KEYS
-    if unknown:
-        raise ValueError(f"--refit keys must be among {sorted(REFIT_KEYS)}, got {sorted(unknown)}")
+    check_refit(spec)
     latent = int(spec.get("latent_dim", module.vae.mu.out_features))
     fresh = bool(spec.get("fresh", False)) or latent != module.vae.mu.out_features
     with th.random.fork_rng():
@@ -207,8 +211,10 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     except json.JSONDecodeError as e:
         p.error(f"--refit takes JSON dicts: {e}")
     for spec in refits:
-        if not isinstance(spec, dict) or set(spec) - REFIT_KEYS:
-            p.error(f"--refit takes JSON dicts with keys among {sorted(REFIT_KEYS)}, got {spec!r}")
+        try:
+            check_refit(spec)
+        except ValueError as e:
+            p.error(str(e))
     th.set_num_threads(args.threads)
     print("command: python benchmarks/embedding_phases.py " + " ".join(sys.argv[1:] if argv is None else argv))
     print(f"machine: {platform.machine()}, {th.get_num_threads()} torch threads, torch {th.__version__}; "

@@ -181,13 +181,21 @@ def phase_observations(env: gym.Env, phase: str, objects: tuple[Key, tuple[int, 
     set_phase(base, phase, key, key_pos, door)
     reach = reachable_cells(base, start_pos)
     cells = [(x, y) for y in range(base.height) for x in range(base.width) if reach[y, x]]
+    return reach, cells, observations_at(env, cells)
+
+
+def observations_at(env: gym.Env, cells: list[tuple[int, int]]) -> np.ndarray:
+    """The observation at each of ``cells`` facing each direction, in the grid's current state, (n_cells, 4, H, W, C);
+    the agent is put back where it was."""
+    base = env.unwrapped
+    start_pos, start_dir = tuple(int(v) for v in base.agent_pos), int(base.agent_dir)
     obs = np.empty((len(cells), DIRECTIONS, *env.observation_space.shape), dtype=env.observation_space.dtype)
     for i, (x, y) in enumerate(cells):
         for d in range(DIRECTIONS):
             base.agent_pos, base.agent_dir = (x, y), d
             obs[i, d] = render_observation(env)
     base.agent_pos, base.agent_dir = start_pos, start_dir
-    return reach, cells, obs
+    return obs
 
 
 def compute_maps(model: PPO_GoCu, env_id: str = "GoCu/DoorKey-8x8-v0", seed: int = 0, n_goals: int | None = None) -> dict[str, Any]:

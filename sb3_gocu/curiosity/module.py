@@ -227,11 +227,13 @@ class GoalCuriosityModule:
         DoorKey-8x8 sample-efficiency benchmark (seeds 0-2) patience 1 reached a mean return of 0.9 in fewer
         steps and less wall time than 0 on every seed (README, Results)
     :param vae_pretrain_patience: ``vae_patience`` of the pretraining's VAE update (on the random-policy
-        observations); None: ``vae_patience``. With patience 1 the pretraining stops after 5 to 7 of its 20 epochs on
-        DoorKey-8x8, at a held-out loss of 1240 to 1507 against 932 after all 20 (``benchmarks/pretrain_epochs.py``);
-        0 trains it all ``vae_epochs`` epochs. Opt-in, measured with 0 on DoorKey-8x8 (README, Results): seeds 0-3
-        reached a mean return of 0.9 within 0.8M steps (133k fewer steps in all than with None) and seed 4 at
-        917,504 (with None: not at all); one run per seed
+        observations); None: ``vae_patience``. Default 0 (the paper): the pretraining trains all ``vae_epochs``
+        epochs on the whole bank, while every later update stops early with ``vae_patience``. With patience 1 the
+        pretraining stops after 5 to 7 of its 20 epochs on DoorKey-8x8, at a held-out loss of 1240 to 1507 against
+        932 after all 20 (``benchmarks/pretrain_epochs.py``). Measured on DoorKey-8x8 (README, Results), one run per
+        seed: with 0, seeds 0-6 but seed 4 reached a mean return of 0.9 within 0.8M steps (seed 4 at 917,504); with
+        None (the default until a69ce69), seeds 0-6 but 4 and 6, in 346k more steps summed over seeds 0-6 (a seed
+        not reached counted at 800,768)
     :param vae_holdout: fraction of the distinct observations held out for ``vae_patience`` (in (0, 0.5])
     :param vae_shards: each VAE minibatch is cut into this many parts (1 to ``vae_batch_size``) whose losses and
         gradients are computed independently, each with 1 torch thread, then added in a fixed order
@@ -335,7 +337,7 @@ class GoalCuriosityModule:
         vae_train_freq: int = 100_000,
         vae_dedupe: bool = True,
         vae_patience: int = 1,
-        vae_pretrain_patience: int | None = None,
+        vae_pretrain_patience: int | None = 0,
         vae_holdout: float = 0.1,
         pretrain_steps: int = 10_000,
         memory_size: int = 10_000,

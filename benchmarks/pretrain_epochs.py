@@ -1,6 +1,11 @@
-"""How many epochs the VAE pretraining runs with the module's early stopping (``vae_patience``).
+"""How many epochs the VAE pretraining runs with the module's early stopping (``vae_pretrain_patience``).
 
-    python benchmarks/pretrain_epochs.py --env GoCu/DoorKey-8x8-v0 --seeds 0 1 --threads 1
+    python benchmarks/pretrain_epochs.py --env GoCu/DoorKey-8x8-v0 --seeds 0 1 --threads 1 \
+        --curiosity-kwargs '{"vae_pretrain_patience": null}'
+
+With the defaults (``vae_pretrain_patience=0``) the pretraining runs all ``vae_epochs`` epochs and measures no
+held-out loss; ``null`` makes it follow ``vae_patience`` (1), the early stopping of the defaults until a69ce69,
+which ``benchmarks/results/vae_epochs/pretrain_epochs_doorkey8.txt`` recorded.
 
 For each seed: a PPO_GoCu with the current defaults (16 envs, n_steps 128) learns 2,048 steps, which covers the
 random-policy pretraining (``pretrain_steps`` observations, then one VAE update) and one rollout; prints the
@@ -35,9 +40,10 @@ def main() -> None:
                          curiosity_kwargs=json.loads(args.curiosity_kwargs))
         model.learn(2048)
         st = model.curiosity.stats
-        print(f"seed {seed}: vae_patience {model.curiosity.vae_patience}, epochs run {st['vae_epochs_run']:.0f} "
-              f"(of {model.curiosity.vae_epochs}), best epoch {st['vae_best_epoch']:.0f}, held-out loss "
-              f"{st['vae_val_loss']:.1f}, {st['vae_time']:.1f} s")
+        held_out = "not measured" if st["vae_val_loss"] != st["vae_val_loss"] else f"{st['vae_val_loss']:.1f}"  # nan: patience 0
+        print(f"seed {seed}: vae_pretrain_patience {model.curiosity.vae_pretrain_patience}, epochs run {st['vae_epochs_run']:.0f} "
+              f"(of {model.curiosity.vae_epochs}), best epoch {st['vae_best_epoch']:.0f}, held-out loss {held_out}, "
+              f"{st['vae_time']:.1f} s")
 
 
 if __name__ == "__main__":

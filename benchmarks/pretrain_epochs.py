@@ -15,6 +15,7 @@ pretraining update's epochs run, best epoch, held-out loss and time (``module.st
 
 import argparse
 import json
+import math
 
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
@@ -40,7 +41,7 @@ def main() -> None:
                          curiosity_kwargs=json.loads(args.curiosity_kwargs))
         model.learn(2048)
         st = model.curiosity.stats
-        held_out = "not measured" if st["vae_val_loss"] != st["vae_val_loss"] else f"{st['vae_val_loss']:.1f}"  # nan: patience 0
+        held_out = "not measured" if math.isnan(st["vae_val_loss"]) else f"{st['vae_val_loss']:.1f}"  # nan: patience 0
         print(f"seed {seed}: vae_pretrain_patience {model.curiosity.vae_pretrain_patience}, epochs run {st['vae_epochs_run']:.0f} "
               f"(of {model.curiosity.vae_epochs}), best epoch {st['vae_best_epoch']:.0f}, held-out loss {held_out}, "
               f"{st['vae_time']:.1f} s")

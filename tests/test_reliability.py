@@ -332,7 +332,7 @@ def test_vae_holdout_split_and_patience_zero():
 @pytest.mark.parametrize("pretrain_kwargs", [dict(vae_pretrain_patience=0), dict()], ids=["explicit", "default"])
 def test_pretraining_has_its_own_patience(pretrain_kwargs):
     """vae_pretrain_patience=0 (the default): the pretraining runs every epoch on the whole bank (no held-out loss
-    measured), and the updates after it stop early with vae_patience; None: the pretraining stops early too."""
+    measured), and the updates after it stop early with vae_patience."""
     module = recorded_module(vae_patience=1, vae_epochs=4, **pretrain_kwargs)
     script = iter([10.0, 11.0, 12.0])
     module._vae_val_loss = lambda data, weights: next(script)
@@ -342,6 +342,10 @@ def test_pretraining_has_its_own_patience(pretrain_kwargs):
     script = iter([10.0, 11.0, 12.0])
     out = module.train_vae()
     assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (1, 0), "the later update: patience 1"
+
+
+def test_pretraining_follows_vae_patience_when_none():
+    """vae_pretrain_patience=None: the pretraining stops early with vae_patience, as the later updates do."""
     module = recorded_module(vae_patience=1, vae_pretrain_patience=None, vae_epochs=4)
     assert module.vae_pretrain_patience == 1
     script = iter([10.0, 11.0, 12.0])

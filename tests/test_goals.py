@@ -125,6 +125,22 @@ def test_trajectory_store_pairs_stay_in_episode_and_capacity():
     assert s_np.min() >= 30  # only the last 20 steps per env are kept
 
 
+def test_trajectory_store_capacity_does_not_depend_on_how_envs_are_added():
+    """Per-env wrappers add their envs one at a time: the rings are sized for all of them, not for the first."""
+    one_by_one, at_once = TrajectoryStore(total_capacity=40, embed_dim=1, min_per_env=4), TrajectoryStore(40, 1, 4)
+    for n in range(1, 5):
+        one_by_one.ensure_envs(n)
+    at_once.ensure_envs(4)
+    assert one_by_one.capacity == at_once.capacity == 10
+    assert one_by_one.embeddings.shape == (10, 4, 1) and (one_by_one.episode_ids == -1).all()
+    # once a state is written, an added env gets a ring of the same length and nothing written is lost
+    one_by_one.add(th.tensor([[1.0], [2.0], [3.0], [4.0]]), np.arange(4), np.arange(4))
+    one_by_one.ensure_envs(5)
+    assert one_by_one.capacity == 10 and one_by_one.embeddings.shape == (10, 5, 1)
+    assert one_by_one.embeddings[0, :, 0].tolist() == [1.0, 2.0, 3.0, 4.0, 0.0]
+    assert one_by_one.episode_ids[0].tolist() == [0, 1, 2, 3, -1] and len(one_by_one) == 4
+
+
 def test_first_visit_distance_is_the_earliest_visit_of_the_goal():
     """Trajectory (one env, one episode) 0 1 1 1 2 1 3: a pair (s, g) gets the steps until g is first seen after s."""
     traj = [0.0, 1.0, 1.0, 1.0, 2.0, 1.0, 3.0]

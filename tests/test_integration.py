@@ -104,6 +104,10 @@ def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():
     module = GoalCuriosityModule(ChainEnv().observation_space, **SMALL_CURIOSITY, seed=0)
     venv = DummyVecEnv([lambda: GoCuWrapper(ChainEnv(), module=module, mode="sum") for _ in range(2)])
     assert module.n_envs == 2
+    # the envs registered one at a time share the store's P_m states, as one VecEnv wrapper's would
+    vec_module = GoCuVecEnvWrapper(chain_venv(), curiosity_kwargs=SMALL_CURIOSITY).module
+    assert vec_module.n_envs == 2 and module.trajectories.capacity == vec_module.trajectories.capacity
+    assert module.trajectories.capacity == max(-(-module.predictor_train_freq // 2), 2 * module.max_distance)
     venv.seed(0)
     venv.reset()
     total, extrinsic = 0.0, 0.0

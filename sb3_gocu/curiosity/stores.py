@@ -71,8 +71,10 @@ class MemoryBank:
 class TrajectoryStore:
     """The most recent embedded states of each env, with episode ids, to draw training pairs from.
 
-    The per-env ring length is fixed when envs are first added: ``max(ceil(total_capacity / n_envs),
-    min_per_env)``, so the store holds about ``total_capacity`` states whatever the number of envs.
+    The per-env ring length is ``max(ceil(total_capacity / n_envs), min_per_env)``, set for the number of envs
+    known when the first state is written (envs added before that, e.g. one per-env wrapper at a time, resize
+    the empty rings), so the store holds about ``total_capacity`` states whatever the number of envs. Envs
+    added after a state was written get rings of the same length (the store then holds more).
 
     :param total_capacity: states kept over all envs
     :param embed_dim: size of phi
@@ -111,13 +113,15 @@ class TrajectoryStore:
 
     def ensure_envs(self, n_envs: int) -> None:
         extra = n_envs - self.n_envs
-        if self.capacity == 0 and extra > 0:
+        if extra > 0 and not self.count.any():
+            # nothing written yet: size the rings for all the envs known now
             self.capacity = max(-(-self.total_capacity // n_envs), self.min_per_env)
-            self.embeddings = th.zeros(self.capacity, 0, self.embed_dim)
-            self.episode_ids = np.zeros((self.capacity, 0), dtype=np.int64)
+            self.embeddings = th.zeros(self.capacity, n_envs, self.embed_dim)
+            self.episode_ids = np.full((self.capacity, n_envs), -1, dtype=np.int64)
+            self.count = np.zeros(n_envs, dtype=np.int64)
             if self.observations is not None:
-                self.observations = np.zeros((self.capacity, 0, *self.obs_shape), dtype=self.obs_dtype)
-        if extra > 0:
+                self.observations = np.zeros((self.capacity, n_envs, *self.obs_shape), dtype=self.obs_dtype)
+        elif extra > 0:
             self.embeddings = th.cat([self.embeddings, th.zeros(self.capacity, extra, self.embed_dim)], dim=1)
             self.episode_ids = np.concatenate([self.episode_ids, np.full((self.capacity, extra), -1)], axis=1)
             self.count = np.concatenate([self.count, np.zeros(extra, dtype=np.int64)])

@@ -70,6 +70,22 @@ def test_novelty_filter_on_hand_made_buffer():
     assert buf0.add(pts[:1, :1], th.from_numpy(pts[:1]), rng) == 0
 
 
+@pytest.mark.parametrize("novelty", [0.1, 0.5])
+def test_nearest_neighbour_distances_stay_exact_as_goals_come_and_go(novelty):
+    """After every add, each goal's kept distance is its true nearest-neighbour distance: also for the goals
+    a new goal comes nearer to, and for those whose nearest neighbour was the goal a full buffer replaced."""
+    rng, data = np.random.default_rng(3), np.random.default_rng(4)
+    buf = make_buffer(capacity=6, novelty=novelty)
+    for _ in range(60):
+        pts = data.normal(size=(1, 2)).astype(np.float32)
+        buf.add(pts[:, :1], th.from_numpy(pts), rng)
+        e = buf.embeddings[: buf.size].double()
+        d = th.cdist(e, e)
+        d.fill_diagonal_(float("inf"))
+        np.testing.assert_allclose(buf.nn_dist[: buf.size], d.min(dim=1).values.numpy(), rtol=1e-6)
+    assert buf.size == 6 and buf.n_added > 6  # the buffer was full and replaced goals
+
+
 def test_goal_buffer_capacity_and_random_replacement():
     rng = np.random.default_rng(1)
     buf = make_buffer(capacity=4, novelty=0.0)

@@ -22,7 +22,8 @@ def select_goal_steps(episode_length: int, n_new: int, strategy: str, rng: np.ra
 
     * ``random``: uniformly;
     * ``proportional``: with probability proportional to the order of visit, ``p(t) ~ t + 1`` (later states
-      are likelier);
+      are likelier; section 5.1.4 says "inversely proportional to their order of visit (the final state has
+      the highest probability)", which contradicts itself: this follows the parenthesis);
     * ``late``: uniformly among the ``4 * n_new`` steps before the final one.
 
     :param episode_length: number of recorded states T (indices 0..T-1)
@@ -55,7 +56,9 @@ class GoalBuffer:
 
     Novelty filter (eq 12 with A = I): a candidate is added only if its Euclidean distance in phi-space to
     the nearest stored goal is larger than ``novelty * median nearest-neighbour distance`` of the buffer
-    (scale-free: it follows the buffer's own spread). With ``novelty = 0`` only exact duplicates are
+    (scale-free: it follows the buffer's own spread). With ``novelty > 0`` each goal's nearest-neighbour
+    distance is kept exact as goals come and go (and searched afresh after a VAE update, :meth:`refresh`);
+    with ``novelty = 0`` it is not needed, and only :meth:`refresh` computes it. With ``novelty = 0`` only exact duplicates are
     refused. When the buffer is full, a random goal is replaced.
 
     :param capacity: maximum number of goals
@@ -76,11 +79,19 @@ class GoalBuffer:
         self.embeddings = th.zeros(capacity, embed_dim)
         # distance of each goal to its nearest other goal (inf while it has none)
         self.nn_dist = np.full(capacity, np.inf, dtype=np.float64)
+        self.nn_idx = np.full(capacity, -1, dtype=np.int64)  # and which goal it is (-1: none)
         self.size = 0
         self.n_added = 0
         self.n_refused = 0
 
+    def _set_neighbour(self, i: int, dists: np.ndarray) -> None:
+        """Goal ``i``'s nearest neighbour from its distances to every goal (inf for itself)."""
+        j = int(dists.argmin()) if len(dists) else -1
+        self.nn_dist[i], self.nn_idx[i] = (dists[j], j) if j >= 0 and np.isfinite(dists[j]) else (np.inf, -1)
+
     def threshold(self) -> float:
+        if self.novelty == 0:
+            return 0.0
         finite = self.nn_dist[: self.size][np.isfinite(self.nn_dist[: self.size])]
         return float(self.novelty * np.median(finite)) if finite.size else 0.0
 
@@ -91,24 +102,32 @@ class GoalBuffer:
         """
         added = 0
         for obs, phi in zip(observations, embeddings):
-            if self.size > 0:
-                dists = th.linalg.vector_norm(self.embeddings[: self.size] - phi, dim=1)
-                j = int(th.argmin(dists))
-                d = float(dists[j])
-                if not d > self.threshold():
-                    self.n_refused += 1
-                    continue
-            else:
-                j, d = -1, np.inf
-            idx = self.size if self.size < self.capacity else int(rng.integers(self.capacity))
+            size = self.size
+            dists = th.linalg.vector_norm(self.embeddings[:size] - phi, dim=1).double().numpy()
+            if size > 0 and not dists.min() > self.threshold():
+                self.n_refused += 1
+                continue
+            replacing = size == self.capacity
+            idx = int(rng.integers(self.capacity)) if replacing else size
             self.observations[idx] = obs
             self.embeddings[idx] = phi
-            self.nn_dist[idx] = d
-            if j >= 0 and j != idx:
-                self.nn_dist[j] = min(self.nn_dist[j], d)
-            self.size = min(self.size + 1, self.capacity)
+            self.size = n = min(size + 1, self.capacity)
             self.n_added += 1
             added += 1
+            if self.novelty == 0:  # only exact duplicates are refused: no threshold, no neighbours to keep
+                continue
+            d_new = dists if replacing else np.append(dists, np.inf)  # the new goal's distance to each goal
+            d_new[idx] = np.inf  # itself (or the goal it replaced)
+            self._set_neighbour(idx, d_new)
+            nearer = d_new < self.nn_dist[:n]  # goals whose nearest neighbour it is now
+            self.nn_dist[:n][nearer] = d_new[nearer]
+            self.nn_idx[:n][nearer] = idx
+            if replacing:  # goals whose nearest neighbour was the replaced goal: search again
+                for i in np.flatnonzero((self.nn_idx[:n] == idx) & ~nearer):
+                    if i != idx:
+                        d_i = th.linalg.vector_norm(self.embeddings[:n] - self.embeddings[i], dim=1).double().numpy()
+                        d_i[i] = np.inf
+                        self._set_neighbour(i, d_i)
         return added
 
     def sample(self, n_sets: int, k: int, rng: np.random.Generator) -> np.ndarray:
@@ -129,12 +148,20 @@ class GoalBuffer:
         for start in range(0, n, batch_size):
             stop = min(n, start + batch_size)
             self.embeddings[start:stop] = embed(self.observations[start:stop])
+        self._find_neighbours()
+
+    def _find_neighbours(self) -> None:
+        """Every goal's nearest neighbour, searched afresh."""
+        n = self.size
         self.nn_dist[:] = np.inf
+        self.nn_idx[:] = -1
         if n >= 2:
             e = self.embeddings[:n]
             d = th.cdist(e, e)
             d.fill_diagonal_(float("inf"))
-            self.nn_dist[:n] = d.min(dim=1).values.double().numpy()
+            nearest = d.min(dim=1)
+            self.nn_dist[:n] = nearest.values.double().numpy()
+            self.nn_idx[:n] = nearest.indices.numpy()
 
     def state_dict(self) -> dict:
         n = self.size
@@ -142,6 +169,7 @@ class GoalBuffer:
             "observations": th.from_numpy(self.observations[:n].copy()),
             "embeddings": self.embeddings[:n].clone(),
             "nn_dist": th.from_numpy(self.nn_dist[:n].copy()),
+            "nn_idx": th.from_numpy(self.nn_idx[:n].copy()),
             "n_added": self.n_added,
             "n_refused": self.n_refused,
         }
@@ -153,7 +181,12 @@ class GoalBuffer:
         self.size = n
         self.observations[:n] = state["observations"].numpy()
         self.embeddings[:n] = state["embeddings"]
-        self.nn_dist[:] = np.inf
-        self.nn_dist[:n] = state["nn_dist"].numpy()
+        if "nn_idx" in state:
+            self.nn_dist[:] = np.inf
+            self.nn_dist[:n] = state["nn_dist"].numpy()
+            self.nn_idx[:] = -1
+            self.nn_idx[:n] = state["nn_idx"].numpy()
+        else:  # saved before the neighbours' indices were kept (their distances could be stale): search afresh
+            self._find_neighbours()
         self.n_added = int(state["n_added"])
         self.n_refused = int(state["n_refused"])

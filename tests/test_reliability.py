@@ -150,6 +150,20 @@ def test_algorithm_and_wrappers_refuse_invalid_settings(make, match):
 
 @pytest.mark.parametrize(
     "space",
+    [spaces.Box(-1.0, 1.0, (8, 8, 3), np.float32), spaces.Box(0.0, np.inf, (3, 8, 8), np.float32)],
+    ids=["negative-low", "unbounded-high"],
+)
+def test_float_images_outside_the_vae_range_are_refused(space):
+    with pytest.raises(ValueError, match=r"observation_space: a float32 image Box needs finite bounds with low >= 0"):
+        GoalCuriosityModule(space)
+    # inside it, the values reach the VAE divided by the largest high
+    module = GoalCuriosityModule(spaces.Box(0.0, 4.0, (8, 8, 3), np.float32))
+    x = module.adapter.to_tensor(np.full((1, 8, 8, 3), 2.0, np.float32))
+    assert x.shape == (1, 3, 8, 8) and th.all(x == 0.5)
+
+
+@pytest.mark.parametrize(
+    "space",
     [
         spaces.Discrete(5),
         spaces.MultiDiscrete([3, 4]),

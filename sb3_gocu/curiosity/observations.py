@@ -99,7 +99,14 @@ class ObservationAdapter:
         if box.dtype == np.uint8:
             self.scale = 255.0
         else:
-            high = np.asarray(box.high, dtype=np.float64)
+            low, high = np.asarray(box.low, dtype=np.float64), np.asarray(box.high, dtype=np.float64)
+            if self.is_image and not (np.isfinite(low).all() and np.isfinite(high).all() and low.min() >= 0):
+                raise ValueError(
+                    f"observation_space: a {box.dtype} image Box needs finite bounds with low >= 0 (GoCu divides it "
+                    f"by its largest high into [0, 1], the range of the VAE's image loss), got low in [{low.min()}, "
+                    f"{low.max()}] and high in [{high.min()}, {high.max()}]: give finite bounds such as Box(0, 1) or "
+                    "Box(0, 255), or a uint8 space"
+                )
             finite_high = high[np.isfinite(high)]
             self.scale = float(finite_high.max()) if self.is_image and finite_high.size and finite_high.max() > 1 else 1.0
 

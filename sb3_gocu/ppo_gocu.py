@@ -4,8 +4,9 @@ Read top to bottom, one iteration is:
 
 1. rollout (:meth:`PPO_GoCu.collect_rollouts`): the env stack carries a GoCu wrapper in ``"separate"``
    mode, so the reward is extrinsic and r_gc arrives in ``infos["gocu_reward"]``; the critic has two heads
-   and both streams are stored; on a time-limit truncation both heads bootstrap from the terminal state
-   (Alg. 1 lines 10-15);
+   and both streams are stored; on a time-limit truncation the extrinsic head bootstraps from the terminal
+   state, and the curiosity head too when its stream is episodic (``intrinsic_episodic=True``; by default it
+   runs across episode ends) (Alg. 1 lines 10-15);
 2. GAE per stream, A = A_e + sigma * A_gc (:class:`~sb3_gocu.buffers.GoCuRolloutBuffer`, eq 10, lines 16-18);
 3. SB3's PPO update, unchanged, on A and on both value targets (line 19);
 4. the curiosity module learns at the rollout end: new goals, VAE every P_vae, predictor every P_m

@@ -207,7 +207,9 @@ class GoalCuriosityModule:
     :param predictor_train_freq: P_m, env steps between predictor updates
     :param predictor_dedupe: train the predictor on the distinct drawn pairs (same phi(s), phi(g) and distance),
         each weighted by its multiplicity: the same objective as the whole draw, with fewer passes when states
-        repeat (an agent that stays put yields the same pair many times)
+        repeat (an agent that stays put yields the same pair many times). With ``soft_labels=False`` each distinct
+        pair draws one Bernoulli label and carries its count as weight: the same expected loss as one label per
+        drawn pair, not the same variance
     :param embed_dim: size of the embedding phi (the FC layer after the VAE encoder)
     :param latent_dim: size of the VAE latent (mu, sigma)
     :param vae_beta: beta of eq 8
@@ -220,8 +222,9 @@ class GoalCuriosityModule:
     :param vae_patience: early stopping of a VAE update: ``vae_holdout`` of the distinct observations are held
         out, the loss of eq 8 on them is measured before the update and after each epoch, the update stops after
         ``vae_patience`` epochs without a new best, and the VAE keeps the weights of its best epoch. When no epoch
-        beats the weights the update started from, the VAE is left as it was and nothing is re-embedded (the
-        trajectories of the predictor are kept). 0 (the paper): always ``vae_epochs`` epochs on the whole bank.
+        beats the weights the update started from, the VAE's weights are left as they were and nothing is
+        re-embedded (the trajectories of the predictor are kept); its Adam moments and step count keep the
+        tried epochs' steps. 0 (the paper): always ``vae_epochs`` epochs on the whole bank.
         Default 1, measured: with ``benchmarks/vae_epochs.py`` a cold VAE improves through 20 epochs, a warm one
         on DoorKey-8x8 does not improve at all at 600k steps (its 20 epochs only move phi at random); on the
         DoorKey-8x8 sample-efficiency benchmark (seeds 0-2) patience 1 reached a mean return of 0.9 in fewer
@@ -234,7 +237,8 @@ class GoalCuriosityModule:
         seed: with 0, seeds 0-6 but seed 4 reached a mean return of 0.9 within 0.8M steps (seed 4 at 917,504); with
         None (the default until a69ce69), seeds 0-6 but 4 and 6, in 346k more steps summed over seeds 0-6 (a seed
         not reached counted at 800,768)
-    :param vae_holdout: fraction of the distinct observations held out for ``vae_patience`` (in (0, 0.5])
+    :param vae_holdout: fraction of the distinct observations held out for ``vae_patience`` (in (0, 0.5]); with
+        ``vae_dedupe=False``, of the bank's rows, so copies of a held-out observation can stay in the training part
     :param vae_shards: each VAE minibatch is cut into this many parts (1 to ``vae_batch_size``) whose losses and
         gradients are computed independently, each with 1 torch thread, then added in a fixed order
         (:func:`~sb3_gocu.curiosity.networks.sharded_vae_gradients`); the held-out loss of ``vae_patience``

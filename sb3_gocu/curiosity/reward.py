@@ -74,7 +74,8 @@ def complexity_score(prior: th.Tensor, distance: th.Tensor, prior_weight: float,
     """Eq 15: ``sc(s, g) = lambda * prior(s, g) + beta * dist(s, g)``.
 
     ``prior`` is the predictor's current belief that the skill is *not* mastered, ``1 - m(phi(s), phi(g))``,
-    and ``dist`` the number of steps between s and g in the trajectory.
+    and ``dist`` the number of steps from s to g in the trajectory (with the module's default
+    ``first_visit_distance=True``, to the first visit of g's observation after s).
     """
     return prior_weight * prior + distance_weight * distance
 

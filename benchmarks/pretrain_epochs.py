@@ -37,8 +37,7 @@ def main() -> None:
     print(f"machine: {machine_line(args.threads)}")
     for seed in args.seeds:
         env = make_vec_env(args.env, n_envs=N_ENVS, seed=seed)
-        model = PPO_GoCu("CnnPolicy", env, n_steps=128, batch_size=256, seed=seed,
-                         curiosity_kwargs=json.loads(args.curiosity_kwargs))
+        model = PPO_GoCu("CnnPolicy", env, seed=seed, curiosity_kwargs=json.loads(args.curiosity_kwargs))
         model.learn(2048)
         st = model.curiosity.stats
         held_out = "not measured" if math.isnan(st["vae_val_loss"]) else f"{st['vae_val_loss']:.1f}"  # nan: patience 0

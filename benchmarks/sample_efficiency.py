@@ -70,15 +70,13 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
-from sb3_gocu import PaperCNN, PPO_GoCu
+from sb3_gocu import PAPER_N_ENVS, PAPER_PPO_KWARGS, PaperCNN, PPO_GoCu
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES
 from sb3_gocu.checkpoints import atomic_write
 
 ALGOS = ("ppo", "ppo_gocu")
-PPO_SETTINGS: dict[str, Any] = dict(
-    n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2
-)
-N_ENVS = 16
+PPO_SETTINGS: dict[str, Any] = dict(PAPER_PPO_KWARGS)  # both algorithms get them explicitly
+N_ENVS = PAPER_N_ENVS
 COLUMNS = (
     "algo", "seed", "steps", "episodes", "window_episodes", "mean_return", "success_rate", "key_rate", "door_rate",
     "intrinsic_mean", "intrinsic_std", "intrinsic_norm_mean", "goals", "wall_time_s", "fps",

@@ -29,7 +29,6 @@ import platform
 import sys
 import tempfile
 import time
-from typing import Any
 
 import numpy as np
 import psutil
@@ -38,13 +37,10 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
-from sb3_gocu import PPO_GoCu
+from sb3_gocu import PAPER_PPO_KWARGS, PPO_GoCu
 from sb3_gocu.checkpoints import GoCuCheckpointCallback
 
 MB = 1024**2
-PAPER_PPO: dict[str, Any] = dict(
-    n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2
-)
 
 
 def rss() -> int:
@@ -108,7 +104,7 @@ def main() -> None:
     print(f"RSS at start: {start / MB:.1f} MB", flush=True)
 
     env = make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed)
-    model = PPO_GoCu("CnnPolicy", env, intrinsic_coef=0.25, seed=args.seed, **PAPER_PPO)
+    model = PPO_GoCu("CnnPolicy", env, intrinsic_coef=0.25, seed=args.seed, **PAPER_PPO_KWARGS)
     sampler = RSSSampler(args.print_every)
     callbacks: list[BaseCallback] = [sampler]
     tmp = None

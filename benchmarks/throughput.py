@@ -29,12 +29,10 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
-from sb3_gocu import PaperCNN, PPO_GoCu
+from sb3_gocu import PAPER_PPO_KWARGS, PaperCNN, PPO_GoCu
 from sb3_gocu.callbacks import GoCuCallback
 
-PPO_SETTINGS: dict[str, Any] = dict(
-    n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2
-)
+PPO_SETTINGS: dict[str, Any] = dict(PAPER_PPO_KWARGS)  # both algorithms get them explicitly
 
 
 class Timer:

@@ -15,7 +15,7 @@ import numpy as np
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
-from sb3_gocu import PPO_GoCu
+from sb3_gocu import PAPER_N_ENVS, PPO_GoCu
 
 
 def main() -> None:
@@ -27,23 +27,10 @@ def main() -> None:
     parser.add_argument("--save", default="gocu_doorkey5")
     args = parser.parse_args()
 
-    env = make_vec_env(args.env, n_envs=16, seed=args.seed)
-    model = PPO_GoCu(
-        "CnnPolicy",
-        env,
-        n_steps=128,
-        batch_size=256,
-        n_epochs=4,
-        learning_rate=1e-4,
-        ent_coef=0.01,
-        gamma=0.99,
-        vf_coef=0.5,
-        clip_range=0.2,
-        intrinsic_coef=0.25,  # sigma, eq 10
-        curiosity_kwargs=dict(n_goals=50, goal_buffer_size=1500, goal_strategy="proportional", reward_scale=10.0),
-        seed=args.seed,
-        verbose=1,
-    )
+    env = make_vec_env(args.env, n_envs=PAPER_N_ENVS, seed=args.seed)  # the paper's 16 envs
+    # the defaults are the paper's: PPO's settings (PAPER_PPO_KWARGS: n_steps 128, batch 256, 4 epochs, lr 1e-4,
+    # ent 0.01, ...), sigma = 0.25 (eq 10) and the module's (K = 50 goals, a buffer of 1500, "proportional", delta 10)
+    model = PPO_GoCu("CnnPolicy", env, seed=args.seed, verbose=1)
     model.learn(args.timesteps, progress_bar=True)
     model.save(args.save)
     print(f"saved {args.save}.zip")

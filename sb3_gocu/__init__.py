@@ -9,7 +9,7 @@ from sb3_gocu.checkpoints import GoCuCheckpointCallback, latest_checkpoint
 from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.envs import register_envs
 from sb3_gocu.policies import PaperCNN
-from sb3_gocu.ppo_gocu import PPO_GoCu
+from sb3_gocu.ppo_gocu import PAPER_N_ENVS, PAPER_PPO_KWARGS, PPO_GoCu
 from sb3_gocu.wrappers import GoCuVecEnvWrapper, GoCuWrapper, find_gocu_module
 
 __version__ = "0.1.0"
@@ -22,6 +22,8 @@ __all__ = [
     "GoCuVecEnvWrapper",
     "GoCuWrapper",
     "GoalCuriosityModule",
+    "PAPER_N_ENVS",
+    "PAPER_PPO_KWARGS",
     "PPO_GoCu",
     "PaperCNN",
     "find_gocu_module",

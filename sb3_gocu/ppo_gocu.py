@@ -18,6 +18,7 @@ restores it, so training continues where it stopped.
 
 from __future__ import annotations
 
+import inspect
 import io
 import json
 import pathlib
@@ -25,7 +26,8 @@ import pickle
 import sys
 import zipfile
 from collections import deque
-from typing import Any, ClassVar, Iterable, TypeVar
+from types import MappingProxyType
+from typing import Any, ClassVar, Iterable, Mapping, TypeVar
 
 import numpy as np
 import torch as th
@@ -47,13 +49,23 @@ from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module, find_gocu_wra
 
 SelfPPOGoCu = TypeVar("SelfPPOGoCu", bound="PPO_GoCu")
 
+#: The paper's PPO settings for MiniGrid (SPEC, "Settings"): PPO_GoCu's defaults for PPO's own arguments, in
+#: place of SB3's (n_steps 2048, batch 64, 10 epochs, lr 3e-4, ent 0). The paper trains on ``PAPER_N_ENVS`` envs,
+#: which the caller makes: ``make_vec_env(env_id, n_envs=PAPER_N_ENVS)``.
+PAPER_PPO_KWARGS: Mapping[str, Any] = MappingProxyType(
+    dict(n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2)
+)
+PAPER_N_ENVS = 16
+
 
 class PPO_GoCu(PPO):
     """Proximal Policy Optimization with goal-based curiosity (GoCu).
 
     Takes every argument of SB3's :class:`~stable_baselines3.PPO` (``learning_rate``, ``n_steps``,
-    ``batch_size``, ``n_epochs``, ``gamma``, ``gae_lambda``, ``clip_range``, ``ent_coef``, ``vf_coef``, ...),
-    plus:
+    ``batch_size``, ``n_epochs``, ``gamma``, ``gae_lambda``, ``clip_range``, ``ent_coef``, ``vf_coef``, ...); those
+    of :data:`PAPER_PPO_KWARGS` default to the paper's values (n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
+    gamma 0.99, vf 0.5, clip 0.2) instead of SB3's, the others to SB3's. The paper runs 16 envs
+    (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. Plus:
 
     :param policy: "MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a two-headed policy class
     :param env: an env id, an env, or a VecEnv; without a GoCu wrapper it is wrapped in a
@@ -113,7 +125,9 @@ class PPO_GoCu(PPO):
         self.curiosity_kwargs = dict(curiosity_kwargs or {})
         self.curiosity: GoalCuriosityModule | None = None
         self.global_rng = GlobalRNGState()
-        super().__init__(policy, env, *args, **kwargs)
+        positional = list(inspect.signature(PPO.__init__).parameters)[3 : 3 + len(args)]  # after self, policy, env
+        defaults = {k: v for k, v in PAPER_PPO_KWARGS.items() if k not in positional}
+        super().__init__(policy, env, *args, **{**defaults, **kwargs})
 
     # ------------------------------------------------------------------ set-up
     def _attach_curiosity(self) -> None:

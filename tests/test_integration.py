@@ -9,7 +9,7 @@ from stable_baselines3 import A2C, PPO
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_gocu import GoalCuriosityModule, GoCuCallback, GoCuVecEnvWrapper, GoCuWrapper, PPO_GoCu
+from sb3_gocu import PAPER_PPO_KWARGS, GoalCuriosityModule, GoCuCallback, GoCuVecEnvWrapper, GoCuWrapper, PPO_GoCu
 
 from conftest import SMALL_CURIOSITY, ChainEnv, record_steps
 
@@ -98,6 +98,20 @@ def test_plain_sb3_algorithms_train_with_sum_mode(algo):
     # what the algorithm sees differs from the extrinsic reward by exactly the reported r_gc
     assert np.allclose(rewards - extrinsic, intrinsic, atol=1e-6)
     assert np.abs(intrinsic).max() > 0
+
+
+def test_ppo_settings_default_to_the_papers_and_given_ones_win():
+    def settings(model):
+        return dict(n_steps=model.n_steps, batch_size=model.batch_size, n_epochs=model.n_epochs, learning_rate=model.learning_rate,
+                    ent_coef=model.ent_coef, gamma=model.gamma, vf_coef=model.vf_coef, clip_range=model.clip_range(1.0))
+
+    assert PAPER_PPO_KWARGS == dict(n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2)
+    sb3 = PPO("MlpPolicy", chain_venv())
+    assert settings(sb3)["n_steps"] == 2048 and settings(sb3)["ent_coef"] == 0.0  # SB3's, not the paper's
+    assert settings(PPO_GoCu("MlpPolicy", chain_venv(), curiosity_kwargs=SMALL_CURIOSITY)) == PAPER_PPO_KWARGS
+    # given ones win, by keyword or by position (learning_rate, n_steps are PPO's first two after env)
+    model = PPO_GoCu("MlpPolicy", chain_venv(), 3e-4, 64, batch_size=32, ent_coef=0.0, curiosity_kwargs=SMALL_CURIOSITY)
+    assert settings(model) == {**PAPER_PPO_KWARGS, "learning_rate": 3e-4, "n_steps": 64, "batch_size": 32, "ent_coef": 0.0}
 
 
 def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():

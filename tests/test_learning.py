@@ -35,10 +35,7 @@ class StopAtMeanReturn(BaseCallback):
 @pytest.mark.slow
 def test_ppo_gocu_solves_doorkey_5x5_within_budget():
     env = make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=16, seed=SEED)
-    model = PPO_GoCu(
-        "CnnPolicy", env, n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01,
-        gamma=0.99, vf_coef=0.5, clip_range=0.2, intrinsic_coef=0.25, seed=SEED,
-    )
+    model = PPO_GoCu("CnnPolicy", env, seed=SEED)  # the paper's PPO and GoCu settings are the defaults
     stop = StopAtMeanReturn()
     model.learn(BUDGET, callback=stop)
     print(f"mean return of the last {WINDOW} episodes reached {TARGET} at {stop.reached_at} steps")

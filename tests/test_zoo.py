@@ -22,6 +22,7 @@ import optuna
 import pytest
 import yaml
 
+from sb3_gocu import PAPER_N_ENVS, PAPER_PPO_KWARGS
 from sb3_gocu.zoo import (
     GOCU_TRIAL_PARAMS,
     convert_ppo_gocu_params,
@@ -106,7 +107,7 @@ def test_default_conf_file():
 
 def test_config_files_hold_the_paper_values():
     files = {name: yaml.safe_load((HYPERPARAMS / f"{name}.yml").read_text()) for name in ("ppo_gocu", "ppo", "ppo_dropin")}
-    ppo_keys = dict(n_envs=16, n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2, policy="CnnPolicy")
+    ppo_keys = dict(n_envs=PAPER_N_ENVS, **PAPER_PPO_KWARGS, policy="CnnPolicy")
     budgets = {"5x5": 5e5, "8x8": 2e6, "11x11": 4e6, "16x16": 5e6, "VisualReacher": 5e5, "VisualPusher": 5e5}
     paper_gocu = dict(n_goals=50, goal_buffer_size=1500, new_goals_per_episode=7, goal_strategy="proportional", reward_scale=10, prior_weight=3, distance_weight=1, label_threshold=15, label_slope=0.8)
     for name, entries in files.items():

@@ -67,6 +67,7 @@ class GoCuCallback(BaseCallback):
         self.model._last_obs = env.reset()  # type: ignore[assignment]
         self.model._last_episode_starts = np.ones((env.num_envs,), dtype=bool)
         self.module.add_finished_episode_goals()
+        self.module.collect_all()  # the first observations of the reset (record_start_states), scored with the goals before
         self.module.sample_goals(np.arange(self.module.n_envs))
         self.pretrain_time = time.perf_counter() - t0
         if self.verbose:

@@ -100,7 +100,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
 
     def reset(self) -> Any:
         obs = self.venv.reset()
-        self.module.begin_episodes(np.arange(self.num_envs))
+        self.module.begin_episodes(np.arange(self.num_envs), obs)
         return obs
 
     def step_wait(self) -> VecEnvStepReturn:
@@ -121,9 +121,10 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
                         reached[i] = infos[i]["terminal_observation"]
         if self.defer:
             # the scoring runs in the module's worker thread; the caller takes it with take_deferred()
-            self.deferred = (self.module.submit(reached, dones), infos, np.asarray(rewards, dtype=np.float32).copy())
+            ticket = self.module.submit(reached, dones, next_observations=obs)
+            self.deferred = (ticket, infos, np.asarray(rewards, dtype=np.float32).copy())
             return obs, rewards, dones, infos
-        raw, normalized = self.module.step(reached, dones)
+        raw, normalized = self.module.step(reached, dones, next_observations=obs)
         rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i]) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
 
@@ -170,7 +171,7 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict]:
         obs, info = self.env.reset(**kwargs)
-        self.module.begin_episodes(self._index)
+        self.module.begin_episodes(self._index, self._batch(obs))
         return obs, info
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:

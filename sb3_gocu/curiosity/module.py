@@ -155,6 +155,7 @@ class ScoringTicket:
         self.folded: FoldedPredictor | None = None
         self.factor: np.ndarray | None = None  # revisit factor
         self.recording = False
+        self.start = False  # the first observations of new episodes (record_start_states): recorded, no reward
         self.future: Any = None  # a concurrent Future (worker thread) or the scoring process's
         self.compute_time = 0.0
         self.compute_cpu_time = 0.0  # CPU time of the computing thread (the rest of compute_time: waiting for the GIL or a core)
@@ -180,7 +181,8 @@ class GoalCuriosityModule:
     :param revisit_decay: how much a state seen again within the same episode is paid: ``"none"`` (every visit
         pays eq 13, the paper), ``"inverse_sqrt"`` (the n-th visit pays r_gc / sqrt(n)) or ``"first_visit"``
         (only the first visit pays; the default, measured on DoorKey-8x8, see the README). Visits are counted
-        on the observation's bytes, per env, from the episode's start (at most ``episode_memory`` distinct
+        on the observation's bytes, per env, from the episode's first recorded state (its reset observation with
+        ``record_start_states``, else the first state a step reaches; at most ``episode_memory`` distinct
         observations; the count restarts when that is exceeded).
         See :func:`~sb3_gocu.curiosity.reward.revisit_factor`
     :param intrinsic_gamma: discount of the intrinsic returns, for the normalisation of eq 14 and (in
@@ -261,6 +263,13 @@ class GoalCuriosityModule:
         steps since the VAE update. The store's observations cost ``predictor_train_freq`` raw observations of memory.
         Opt-in: on DoorKey-8x8 no rollout had r_gc = 0 with it, but seeds 0 and 2 reached a mean return of 0.9 at
         778,240 and 751,616 steps and seed 1 not within 800,768 (README, Results), against 3 of 3 with False
+    :param record_start_states: record the first observation of each episode, s_0 (the reset one; the wrappers
+        hand it to :meth:`begin_episodes`), as the states reached by a step are recorded: into the memory bank,
+        the episode's goal candidates, the trajectory store (so training pairs start from s_0 too: "each visited
+        state s_t is concatenated with the d_max next states", section on the predictor) and the visit counts (a
+        return to s_0 is a revisit for ``revisit_decay``). It is scored for the episode's memo but pays no reward,
+        updates no normaliser and counts as no env step. False (default): only the states reached by a step are
+        recorded, as every figure in the README was measured. Opt-in until measured
     :param pretrain_steps: random-policy observations collected to pretrain the VAE before the first rollout
     :param memory_size: capacity of the memory bank
     :param episode_memory: most recent states of the current episode kept per env to draw goals from
@@ -354,6 +363,7 @@ class GoalCuriosityModule:
         update_threads: int | None = None,
         vae_shards: int = 1,
         refit_predictor_after_vae: bool = False,
+        record_start_states: bool = False,
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
@@ -451,6 +461,8 @@ class GoalCuriosityModule:
         self.vae_shards = int(vae_shards)
         _check(isinstance(refit_predictor_after_vae, (bool, np.bool_)), f"refit_predictor_after_vae must be True or False, got {refit_predictor_after_vae!r}")
         self.refit_predictor_after_vae = bool(refit_predictor_after_vae)
+        _check(isinstance(record_start_states, (bool, np.bool_)), f"record_start_states must be True or False, got {record_start_states!r}")
+        self.record_start_states = bool(record_start_states)
         self._shard_pool: ThreadPoolExecutor | None = None
         self._shard_pool_workers = 0
         self.pretrain_steps = pretrain_steps
@@ -605,10 +617,22 @@ class GoalCuriosityModule:
         self.n_envs = n_envs
         self.sample_goals(np.arange(old, n_envs))
 
-    def begin_episodes(self, env_indices: np.ndarray) -> None:
+    def begin_episodes(self, env_indices: np.ndarray, observations: Any = None, background: bool = False) -> None:
         """Start new episodes in ``env_indices``: a finished episode (while recording) is queued for goal
-        selection, and the new episode gets a fresh id and K fresh goals."""
-        for e in np.asarray(env_indices, dtype=np.int64):
+        selection, and the new episode gets a fresh id and K fresh goals.
+
+        :param observations: the new episodes' first observations, one per env of ``env_indices`` (recorded with
+            ``record_start_states``, ignored otherwise)
+        :param background: score them in the worker, as :meth:`submit`
+        """
+        env_indices = np.asarray(env_indices, dtype=np.int64)
+        if len(env_indices):
+            self.ensure_envs(int(env_indices.max()) + 1)
+        self._start_episodes(env_indices, None if observations is None else self.adapter.extract(observations), background)
+
+    def _start_episodes(self, env_indices: np.ndarray, starts: np.ndarray | None, background: bool) -> None:
+        """:meth:`begin_episodes` with the first observations already extracted (raw rows, or None)."""
+        for e in env_indices:
             if self.recording and len(self._episodes[e]):
                 self.finished_episodes.append(np.stack(self._episodes[e]))
             self._episodes[e].clear()
@@ -618,6 +642,8 @@ class GoalCuriosityModule:
             self._next_episode_id += 1
         if len(env_indices):
             self.sample_goals(env_indices)
+        if starts is not None and self.record_start_states and self.recording and len(env_indices):
+            self._submit(starts, np.zeros(len(env_indices), dtype=bool), env_indices, background, start=True)
 
     def register_env(self) -> int:
         """Add one env (for per-env wrappers sharing this module) and return its index."""
@@ -759,35 +785,56 @@ class GoalCuriosityModule:
         return visits
 
     # ------------------------------------------------------------------ the step
-    def step(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def step(
+        self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None, next_observations: Any = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Curiosity reward of the states just reached, one per env.
 
         :param observations: batch of observations s_{t+1} (for an env whose episode just ended: its terminal
             observation, not the reset one)
         :param dones: whether each env's episode ended with this observation; such envs get new goals
         :param env_indices: which envs the rows belong to (default: 0..n-1)
+        :param next_observations: the batch the envs go on from (a VecEnv's: the reset observation where an episode
+            ended), so that ``record_start_states`` records the new episodes' first observations; None: not recorded
         :return: raw r_gc (eq 13, times the revisit factor of ``revisit_decay``) and normalised r_gc (eq 14),
             float32 arrays of shape (n,)
         """
-        return self.collect(self.submit(observations, dones, env_indices, background=False))
+        return self.collect(self.submit(observations, dones, env_indices, background=False, next_observations=next_observations))
 
-    def submit(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None, background: bool = True) -> "ScoringTicket":
+    def submit(
+        self,
+        observations: Any,
+        dones: np.ndarray,
+        env_indices: np.ndarray | None = None,
+        background: bool = True,
+        next_observations: Any = None,
+    ) -> "ScoringTicket":
         """First half of :meth:`step`: everything but the VAE's embedding and the predictor's scoring of the states
         new to their episode (and to the embedding memo), which run in a worker thread (``background=True``) while the caller goes on (e.g. steps the envs again). Take the
         rewards with :meth:`collect`, in the order of submission; :meth:`step` is ``collect(submit(...))``.
         The values are the same either way: the states scored together are the same, and every update of the
         module's state (memo, normaliser, statistics) happens in the caller's thread in submission order.
+        ``next_observations``: as for :meth:`step`.
         """
+        raw = self.adapter.extract(observations)
+        env_indices = np.arange(len(raw)) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
+        dones = np.asarray(dones, dtype=bool)
+        ticket = self._submit(raw, dones, env_indices, background)
+        record = next_observations is not None and self.record_start_states and dones.any()
+        self._start_episodes(env_indices[dones], self.adapter.extract(next_observations)[dones] if record else None, background)
+        return ticket
+
+    def _submit(self, raw: np.ndarray, dones: np.ndarray, env_indices: np.ndarray, background: bool, start: bool = False) -> "ScoringTicket":
+        """:meth:`submit` of raw rows, without starting the episodes that end; ``start``: the rows are the first
+        observations of new episodes (``record_start_states``): recorded and scored, but no env step."""
         self._await_overlapped_update()
         t0 = time.perf_counter()
-        raw = self.adapter.extract(observations)
         n = len(raw)
-        env_indices = np.arange(n) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
         self.ensure_envs(int(env_indices.max()) + 1)
-        dones = np.asarray(dones, dtype=bool)
         keys = [self._key(x) for x in raw]
         ticket = self._lookup(raw, env_indices, keys)
         ticket.recording = self.recording
+        ticket.start = start
         if self.recording and self.trajectories.keeps_observations:
             ticket.observations = np.array(raw, copy=True)
         if self.revisit_decay != "none":
@@ -796,7 +843,8 @@ class GoalCuriosityModule:
             self.memory.add(raw, self.rng)
             for j, e in enumerate(env_indices):
                 self._episodes[e].append(raw[j].copy())
-            self.n_recorded_steps += n
+            if not start:
+                self.n_recorded_steps += n
         if len(ticket.miss) and background and self.scoring_process:
             # the process keeps each env's goal halves: it is sent those changed since it last had them
             ticket.future = self.start_scoring_process().submit(ticket, self._eq13_args, self._goal_parts, self._goal_version)
@@ -813,7 +861,6 @@ class GoalCuriosityModule:
                         earlier.future.result()
                 ticket.computed = self._compute(ticket)
         self._outstanding.append(ticket)
-        self.begin_episodes(env_indices[dones])
         self.time_inference += time.perf_counter() - t0
         return ticket
 
@@ -852,6 +899,10 @@ class GoalCuriosityModule:
         if ticket.recording:  # phi of every row is known now
             self.trajectories.add(th.from_numpy(ticket.phi), ticket.episode_ids, ticket.env_indices, ticket.observations)
         rewards = ticket.rewards
+        if ticket.start:  # first observations of episodes: no reward to pay, normalise or count
+            ticket.result = (rewards, np.zeros_like(rewards))
+            self.time_inference += time.perf_counter() - t0
+            return ticket.result
         if not np.all(np.isfinite(rewards)):
             # a broken network must not poison the policy's buffer: no bonus for these states
             self.stats["nonfinite_rewards"] = self.stats.get("nonfinite_rewards", 0) + int((~np.isfinite(rewards)).sum())

@@ -56,10 +56,10 @@ class GoalBuffer:
 
     Novelty filter (eq 12 with A = I): a candidate is added only if its Euclidean distance in phi-space to
     the nearest stored goal is larger than ``novelty * median nearest-neighbour distance`` of the buffer
-    (scale-free: it follows the buffer's own spread). With ``novelty > 0`` each goal's nearest-neighbour
-    distance is kept exact as goals come and go (and searched afresh after a VAE update, :meth:`refresh`);
-    with ``novelty = 0`` it is not needed, and only :meth:`refresh` computes it. With ``novelty = 0`` only exact duplicates are
-    refused. When the buffer is full, a random goal is replaced.
+    (scale-free: it follows the buffer's own spread); each goal's nearest-neighbour distance is kept exact as
+    goals come and go, and searched afresh after a VAE update (:meth:`refresh`). With ``novelty = 0`` only
+    exact duplicates are refused, and no threshold and no neighbours are needed between refreshes. When the
+    buffer is full, a random goal is replaced.
 
     :param capacity: maximum number of goals
     :param obs_shape: raw observation shape

@@ -628,7 +628,8 @@ class GoalCuriosityModule:
         env_indices = np.asarray(env_indices, dtype=np.int64)
         if len(env_indices):
             self.ensure_envs(int(env_indices.max()) + 1)
-        self._start_episodes(env_indices, None if observations is None else self.adapter.extract(observations), background)
+        record = observations is not None and self.record_start_states
+        self._start_episodes(env_indices, self.adapter.extract(observations) if record else None, background)
 
     def _start_episodes(self, env_indices: np.ndarray, starts: np.ndarray | None, background: bool) -> None:
         """:meth:`begin_episodes` with the first observations already extracted (raw rows, or None)."""

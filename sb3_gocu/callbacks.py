@@ -46,9 +46,11 @@ class GoCuCallback(BaseCallback):
 
     def _on_training_start(self) -> None:
         assert self.module is not None
-        self.module.recording = True
         if not self.module.pretrained:
-            self._pretrain()
+            self.module.recording = True
+            self._pretrain()  # its resets begin new episodes: the first observations of learn's own reset are dropped
+        else:
+            self.module.start_recording()  # records the first observations of learn's own reset (record_start_states)
 
     def _pretrain(self) -> None:
         """Random-policy observations -> VAE pretraining and first goals (Alg. 1, lines 1-2)."""

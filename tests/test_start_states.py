@@ -104,3 +104,47 @@ def test_ppo_gocu_records_the_reset_observations_through_the_scoring_process():
         assert len(firsts) >= 2
         for t in firsts:
             np.testing.assert_allclose(store.embeddings[t, e], start, rtol=0, atol=1e-6)
+
+
+def test_first_observations_of_a_reset_before_recording_are_recorded_when_it_starts():
+    """SB3's learn resets the env before the callback switches recording on: those first observations wait and are
+    recorded by start_recording, unless their episode took a step (or ended) while recording was off."""
+    module = GoalCuriosityModule(SPACE, **{**SMALL_CURIOSITY, "record_start_states": True}, seed=0)
+    module.begin_episodes(np.arange(3), rows(0.0, 0.1, 0.2))  # not recording: nothing recorded yet
+    assert module.memory.size == 0 and module.trajectories.count.tolist() == [0, 0, 0]
+    module.step(rows(0.3), np.array([False]), env_indices=np.array([1]))  # env 1's episode goes on unrecorded
+    module.begin_episodes(np.array([2]), rows(0.4))  # env 2 starts again: its earlier s_0 is gone
+    module.start_recording()
+    module.collect_all()
+    assert module.recording and module.n_recorded_steps == 0
+    assert module.trajectories.count.tolist() == [1, 0, 1]
+    np.testing.assert_allclose(module.trajectories.embeddings[0, [0, 2]], module.embed(rows(0.0, 0.4)), rtol=0, atol=1e-6)
+    assert module.memory.size == 2
+    module.start_recording()  # nothing left to record
+    module.collect_all()
+    assert module.trajectories.count.tolist() == [1, 0, 1]
+
+
+@pytest.mark.parametrize("record", [True, False])
+def test_a_second_learn_records_the_first_observations_of_its_reset(record):
+    """Every episode of the second learn() has its s_0 in the trajectory store, the first one (begun by learn's own
+    reset, before the callback starts) included; without the option none has."""
+    from sb3_gocu import PPO_GoCu
+
+    env = make_vec_env(lambda: ChainEnv(length=3, max_steps=4), n_envs=2, seed=0)
+    kwargs = {**SMALL_CURIOSITY, "record_start_states": record, "scoring_process": False}
+    model = PPO_GoCu("MlpPolicy", env, n_steps=16, batch_size=32, seed=0, curiosity_kwargs=kwargs)
+    model.learn(32)
+    module = model.curiosity
+    module.collect_all()
+    store = module.trajectories
+    before = store.count.copy()
+    model.learn(32)  # reset_num_timesteps=True: learn resets the env again
+    module.collect_all()
+    start = module.embed(rows(0.0))[0]
+    for e in range(2):
+        ids = store.episode_ids[before[e] : store.count[e], e]
+        episodes = len(np.unique(ids))
+        assert store.count[e] - before[e] == 16 + (episodes if record else 0)
+        if record:
+            np.testing.assert_allclose(store.embeddings[before[e], e], start, rtol=0, atol=1e-6)

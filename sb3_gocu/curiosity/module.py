@@ -529,6 +529,10 @@ class GoalCuriosityModule:
         #: when True, :meth:`step` records observations (memory bank, trajectory store, episodes) and updates
         #: the normaliser; a training callback switches it on
         self.recording = False
+        #: first observations of episodes begun while not recording (``record_start_states``), per env, recorded by
+        #: :meth:`start_recording` if their episode has taken no step by then (e.g. the reset of SB3's
+        #: ``_setup_learn``, which comes before a training callback switches recording on)
+        self._unrecorded_starts: dict[int, np.ndarray] = {}
         self.pretrained = False
         self.n_recorded_steps = 0
         self.last_vae_update = 0
@@ -636,6 +640,7 @@ class GoalCuriosityModule:
     def _start_episodes(self, env_indices: np.ndarray, starts: np.ndarray | None, background: bool) -> None:
         """:meth:`begin_episodes` with the first observations already extracted (raw rows, or None)."""
         for e in env_indices:
+            self._unrecorded_starts.pop(int(e), None)  # its episode is over
             if self.recording and len(self._episodes[e]):
                 self.finished_episodes.append(np.stack(self._episodes[e]))
             self._episodes[e].clear()
@@ -645,8 +650,22 @@ class GoalCuriosityModule:
             self._next_episode_id += 1
         if len(env_indices):
             self.sample_goals(env_indices)
-        if starts is not None and self.record_start_states and self.recording and len(env_indices):
-            self._submit(starts, np.zeros(len(env_indices), dtype=bool), env_indices, background, start=True)
+        if starts is not None and self.record_start_states and len(env_indices):
+            if self.recording:
+                self._submit(starts, np.zeros(len(env_indices), dtype=bool), env_indices, background, start=True)
+            else:
+                for j, e in enumerate(env_indices):
+                    self._unrecorded_starts[int(e)] = starts[j].copy()
+
+    def start_recording(self) -> None:
+        """Switch recording on (a training callback's start), and record the first observations of the episodes
+        begun while it was off that have taken no step since (``record_start_states``): SB3's ``learn`` resets the
+        env before its callbacks start, so without this each ``learn`` after the first would miss one s_0 per env."""
+        self.recording = True
+        if self._unrecorded_starts:
+            env_indices = np.array(sorted(self._unrecorded_starts), dtype=np.int64)
+            starts = np.stack([self._unrecorded_starts.pop(int(e)) for e in env_indices])
+            self._submit(starts, np.zeros(len(env_indices), dtype=bool), env_indices, False, start=True)
 
     def register_env(self) -> int:
         """Add one env (for per-env wrappers sharing this module) and return its index."""
@@ -834,6 +853,9 @@ class GoalCuriosityModule:
         t0 = time.perf_counter()
         n = len(raw)
         self.ensure_envs(int(env_indices.max()) + 1)
+        if self._unrecorded_starts and not start:  # these episodes go on unrecorded: their s_0 stays so
+            for e in env_indices:
+                self._unrecorded_starts.pop(int(e), None)
         keys = [self._key(x) for x in raw]
         ticket = self._lookup(raw, env_indices, keys)
         ticket.recording = self.recording

@@ -87,12 +87,17 @@ def test_the_vecenv_wrapper_records_each_reset_observation(deferred):
         np.testing.assert_allclose(module.trajectories.embeddings[t, 0], start, rtol=0, atol=1e-6)
 
 
-def test_ppo_gocu_records_the_reset_observations_through_the_scoring_process():
+def chain_model(record: bool, scoring_process: bool):
+    """PPO_GoCu on two ChainEnvs of 3 cells and at most 4 steps, rollouts of 16 steps per env."""
     from sb3_gocu import PPO_GoCu
 
     env = make_vec_env(lambda: ChainEnv(length=3, max_steps=4), n_envs=2, seed=0)
-    kwargs = {**SMALL_CURIOSITY, "record_start_states": True, "scoring_process": True}
-    model = PPO_GoCu("MlpPolicy", env, n_steps=16, batch_size=32, seed=0, curiosity_kwargs=kwargs)
+    kwargs = {**SMALL_CURIOSITY, "record_start_states": record, "scoring_process": scoring_process}
+    return PPO_GoCu("MlpPolicy", env, n_steps=16, batch_size=32, seed=0, curiosity_kwargs=kwargs)
+
+
+def test_ppo_gocu_records_the_reset_observations_through_the_scoring_process():
+    model = chain_model(record=True, scoring_process=True)
     model.learn(160)
     module = model.curiosity
     module.collect_all()
@@ -129,11 +134,7 @@ def test_first_observations_of_a_reset_before_recording_are_recorded_when_it_sta
 def test_a_second_learn_records_the_first_observations_of_its_reset(record):
     """Every episode of the second learn() has its s_0 in the trajectory store, the first one (begun by learn's own
     reset, before the callback starts) included; without the option none has."""
-    from sb3_gocu import PPO_GoCu
-
-    env = make_vec_env(lambda: ChainEnv(length=3, max_steps=4), n_envs=2, seed=0)
-    kwargs = {**SMALL_CURIOSITY, "record_start_states": record, "scoring_process": False}
-    model = PPO_GoCu("MlpPolicy", env, n_steps=16, batch_size=32, seed=0, curiosity_kwargs=kwargs)
+    model = chain_model(record=record, scoring_process=False)
     model.learn(32)
     module = model.curiosity
     module.collect_all()

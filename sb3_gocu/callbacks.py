@@ -64,6 +64,7 @@ class GoCuCallback(BaseCallback):
                 env.step(np.array([self.model.action_space.sample() for _ in range(env.num_envs)]))
                 self.module.add_finished_episode_goals()
         stats = self.module.pretrain()
+        bank_size = self.module.memory.size  # what the VAE was pretrained on (the reset below records more)
         # the reset closes the random episodes still running (on large grids none has ended yet): their states
         # become goals too, embedded by the pretrained VAE, and every env then draws its first K goals
         self.model._last_obs = env.reset()  # type: ignore[assignment]
@@ -74,7 +75,7 @@ class GoCuCallback(BaseCallback):
         self.pretrain_time = time.perf_counter() - t0
         if self.verbose:
             print(
-                f"GoCu: pretrained the VAE on {self.module.memory.size} random-policy observations "
+                f"GoCu: pretrained the VAE on {bank_size} random-policy observations "
                 f"({stats.get('vae_distinct_observations', 0):.0f} distinct) in {self.pretrain_time:.1f} s; "
                 f"{self.module.goal_buffer.size} goals"
             )

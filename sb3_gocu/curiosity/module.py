@@ -270,8 +270,7 @@ class GoalCuriosityModule:
         return to s_0 is a revisit for ``revisit_decay``). It is scored for the episode's memo but pays no reward,
         updates no normaliser and counts as no env step (the paper's reading). False (default): only the states
         reached by a step are recorded. Opt-in, measured: on DoorKey-8x8 it reached a mean return of 0.9 within
-        0.8M steps on seeds 0-3 and not on seeds 4 and 5 (seed 6: README), against 6 of 7 seeds without it
-        (README, Results)
+        0.8M steps on 5 of 7 seeds (not on seeds 4 and 5), against 6 of 7 without it (README, Results)
     :param pretrain_steps: random-policy observations collected to pretrain the VAE before the first rollout
     :param memory_size: capacity of the memory bank
     :param episode_memory: most recent states of the current episode kept per env to draw goals from

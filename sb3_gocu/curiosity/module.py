@@ -651,7 +651,7 @@ class GoalCuriosityModule:
             self.sample_goals(env_indices)
         if starts is not None and self.record_start_states and len(env_indices):
             if self.recording:
-                self._submit(starts, np.zeros(len(env_indices), dtype=bool), env_indices, background, start=True)
+                self._record_starts(starts, env_indices, background)
             else:
                 for j, e in enumerate(env_indices):
                     self._unrecorded_starts[int(e)] = starts[j].copy()
@@ -664,7 +664,11 @@ class GoalCuriosityModule:
         if self._unrecorded_starts:
             env_indices = np.array(sorted(self._unrecorded_starts), dtype=np.int64)
             starts = np.stack([self._unrecorded_starts.pop(int(e)) for e in env_indices])
-            self._submit(starts, np.zeros(len(env_indices), dtype=bool), env_indices, False, start=True)
+            self._record_starts(starts, env_indices, background=False)
+
+    def _record_starts(self, starts: np.ndarray, env_indices: np.ndarray, background: bool) -> None:
+        """Record and score the first observations of new episodes (raw rows): no reward, no env step."""
+        self._submit(starts, np.zeros(len(env_indices), dtype=bool), env_indices, background, start=True)
 
     def register_env(self) -> int:
         """Add one env (for per-env wrappers sharing this module) and return its index."""

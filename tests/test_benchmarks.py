@@ -191,6 +191,21 @@ def test_predictor_epochs_probe_replays_the_update_per_budget(two_runs):
     assert again["curves"][64][-1]["val_loss"] == curves[64][-1]["val_loss"]
 
 
+def test_bf16_scoring_compares_both_dtypes_on_a_saved_model(two_runs):
+    bench = load_script("bf16_scoring", "benchmarks/bf16_scoring.py")
+    out, _ = two_runs
+    model = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
+    result = bench.main([
+        "--model", str(model), "--env", "GoCu/DoorKey-5x5-v0", "--n-envs", "2", "--steps", "16", "--calls", "3",
+        "--batch-sizes", "1", "3",
+    ])
+    p = result["precision"]
+    assert p["states"] == 32
+    assert 0 < p["r_diff_max"] < 1e-3 and p["r_diff_mean"] <= p["r_diff_max"]  # raw r_gc lies in [0, 0.1]
+    assert 0 < p["mastery_diff_max"] < 1e-2 and 0.0 <= p["argmax_changed"] <= 1.0
+    assert sorted(result["speed"]) == [1, 3] and all(a > 0 and b > 0 for a, b in result["speed"].values())
+
+
 def test_view_aliasing_renders_every_standable_cell_of_each_phase():
     """DoorKey-5x5, layout 0: the key phase covers the left room (the key's cell too: it is carried), the door
     phase adds the door's cell and the right room; 4 directions each. A right-room view counts as aliased

@@ -65,6 +65,38 @@ def test_folded_predictor_equals_eval_module():
     assert th.allclose(fast, slow, atol=1e-6)
 
 
+def test_bfloat16_folded_predictor_rounds_only_the_hidden_layers():
+    """bfloat16 folding: the first layer's halves stay float32 (goal halves are shared with float32 code) and the
+    mastery is within bfloat16 rounding of float32's, with its own low bits (the cast really happens)."""
+    th.manual_seed(0)
+    p = MasteryPredictor(embed_dim=16, hidden_sizes=(64, 64, 64))
+    p.train()
+    for _ in range(3):
+        p(th.randn(32, 16) * 3 + 1, th.randn(32, 16))
+    p.eval()
+    with th.no_grad():  # spread the logit difference (here in [-0.43, -0.20]) over about [-7, 4]
+        p.out.weight.mul_(50.0)
+        p.out.bias.mul_(50.0)
+        p.out.bias[1] += 50.0 * 0.28
+    s, g = th.randn(40, 16), th.randn(40, 7, 16)
+    f32, bf16 = p.fold(), p.fold(th.bfloat16)
+    assert bf16.dtype == th.bfloat16 and all(w.dtype == th.bfloat16 and b.dtype == th.bfloat16 for w, b in bf16.layers)
+    assert bf16.w_state.dtype == bf16.w_goal.dtype == bf16.w_out.dtype == th.float32
+    assert th.equal(bf16.goal_part(g), f32.goal_part(g)) and th.equal(bf16.state_part(s), f32.state_part(s))
+    a = f32.mastery_from_parts(f32.state_part(s), f32.goal_part(g))
+    b = bf16.mastery_from_parts(bf16.state_part(s), bf16.goal_part(g))
+    assert b.dtype == th.float32 and b.shape == (40, 7)
+    assert a.min() < 0.05 and a.max() > 0.95  # the test covers the whole range
+    diff = (a - b).abs()
+    assert 0 < diff.max() < 0.02
+    assert diff.mean() < 0.005
+
+
+def test_fold_refuses_other_dtypes():
+    with pytest.raises(ValueError, match="dtype must be torch.float32 or torch.bfloat16"):
+        MasteryPredictor(embed_dim=4, hidden_sizes=(8, 8)).fold(th.float16)
+
+
 def test_curiosity_reward_eq13_by_hand():
     m = th.tensor([[0.2, 0.9, 0.5], [0.1, 0.1, 0.4]])
     assert curiosity_reward(m, alpha=1.0, aggregation="max", scale=10.0).tolist() == pytest.approx([0.01, 0.06])

@@ -24,11 +24,11 @@ def frames_with_repeats(n_steps: int, n_envs: int, seed: int) -> np.ndarray:
     return pool[rng.integers(0, len(pool), (n_steps, n_envs))]
 
 
-def run_module(mode: str, frames: np.ndarray, dones: np.ndarray, in_flight: int) -> tuple[list, GoalCuriosityModule]:
+def run_module(mode: str, frames: np.ndarray, dones: np.ndarray, in_flight: int, **kwargs) -> tuple[list, GoalCuriosityModule]:
     """Feed the frames through a fresh module: ``sync`` (step), ``thread`` or ``process`` (submit, with up to
     ``in_flight`` tickets outstanding); a predictor and a VAE update halfway (new encoder, folded predictor and
-    goal halves)."""
-    module = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, revisit_decay="none", scoring_process=mode == "process", seed=3)
+    goal halves). ``kwargs``: more module keywords."""
+    module = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, revisit_decay="none", scoring_process=mode == "process", seed=3, **kwargs)
     module.recording = True
     module.pretrain()
     out, tickets = [], []
@@ -161,3 +161,40 @@ def test_a_failure_in_the_scoring_process_is_raised_with_its_traceback():
     ticket = module.submit(frames_with_repeats(1, 2, seed=4)[0], np.zeros(2, bool))
     with pytest.raises(RuntimeError, match=r"scoring process failed:\n(.|\n)*Traceback(.|\n)*mat1 and mat2"):
         module.collect(ticket)
+
+
+def test_bfloat16_scoring_is_the_same_in_a_process_and_close_to_float32():
+    """``scoring_dtype="bfloat16"``: the process scores the same bits as the caller (the folded predictor it is
+    sent keeps its dtype, also after the predictor update halfway), and r_gc stays within bfloat16 rounding of
+    float32's while differing from it (the cast happens in the module, not only in the network's test)."""
+    frames = frames_with_repeats(120, 3, seed=0)
+    dones = np.random.default_rng(1).random((120, 3)) < 0.08
+    sync, m_sync = run_module("sync", frames, dones, 0, scoring_dtype="bfloat16")
+    proc, m_proc = run_module("process", frames, dones, 4, scoring_dtype="bfloat16")
+    for (r1, n1), (r2, n2) in zip(sync, proc):
+        assert np.array_equal(r1, r2) and np.array_equal(n1, n2)
+    assert m_sync._folded.dtype == m_proc._folded.dtype == th.bfloat16
+    f32, _ = run_module("sync", frames, dones, 0)
+    raw_bf16 = np.concatenate([r for r, _ in sync])
+    raw_f32 = np.concatenate([r for r, _ in f32])
+    diff = np.abs(raw_bf16 - raw_f32)
+    # r_gc = (1 - max_k m) / 10: bfloat16's rounding moves m by well under 1e-2 here
+    assert 0 < diff.max() < 1e-3
+    assert len(np.unique(raw_f32)) > 5
+
+
+def test_scoring_dtype_is_checked_and_kept_by_a_save(tmp_path):
+    with pytest.raises(ValueError, match="scoring_dtype must be one of \\('float32', 'bfloat16'\\), got 'float16'"):
+        GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, scoring_dtype="float16")
+    env = make_vec_env(ChainEnv, n_envs=2, seed=0)
+    curiosity = {**SMALL_CURIOSITY, "scoring_dtype": "bfloat16", "scoring_process": False}
+    model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=1, seed=0, curiosity_kwargs=curiosity)
+    with th.no_grad():  # weights a fresh module would not have: the loaded fold must come from the saved ones
+        for q in model.curiosity.predictor.parameters():
+            q.add_(0.5)
+    model.curiosity._folded = model.curiosity._fold()
+    model.save(tmp_path / "m.zip")
+    loaded = PPO_GoCu.load(tmp_path / "m.zip", env=env)
+    assert loaded.curiosity.scoring_dtype == "bfloat16"
+    for (w1, b1), (w2, b2) in zip(model.curiosity._folded.layers, loaded.curiosity._folded.layers):
+        assert w2.dtype == th.bfloat16 and th.equal(w1, w2) and th.equal(b1, b2)

@@ -54,6 +54,10 @@ from sb3_gocu.curiosity.reward import (
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, distinct_rows, observation_key
 
 
+#: ``scoring_dtype`` choices: the dtype of the predictor's hidden layers after the first when scoring eq 13
+SCORING_DTYPES = {"float32": th.float32, "bfloat16": th.bfloat16}
+
+
 def _check(condition: bool, message: str) -> None:
     if not condition:
         raise ValueError(message)
@@ -311,6 +315,12 @@ class GoalCuriosityModule:
         rollouts waited 2.8 s for the scores against 14.2 s with the worker thread, and PPO_GoCu's time per
         step was 1.30x plain PPO's against 1.39x (same run, 1 torch thread). ``None`` (default): a process
         on a POSIX system with a CPU device, else a thread. See :class:`~sb3_gocu.curiosity.scoring.ProcessScorer`
+    :param scoring_dtype: dtype of the predictor's hidden layers after the first when scoring states against
+        their K goals (eq 13, every step), ``"float32"`` (default) or ``"bfloat16"``. Those layers are nearly all
+        of the scoring's work; bfloat16 rounds their inputs and weights to 8 bits of mantissa, so r_gc differs
+        from float32's by about 1e-3 of its range, and runs about 3x faster on a CPU with AVX512-BF16 (slower
+        on one without). Only the scoring changes: the predictor trains, and scores its training pairs' prior
+        (eq 15), in float32. Opt-in; see ``benchmarks/bf16_scoring.py`` and the README's "Throughput"
     :param device: torch device of the networks
     :param seed: seed of the module's random generators
     """
@@ -365,6 +375,7 @@ class GoalCuriosityModule:
         vae_shards: int = 1,
         refit_predictor_after_vae: bool = False,
         record_start_states: bool = False,
+        scoring_dtype: str = "float32",
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
@@ -464,6 +475,8 @@ class GoalCuriosityModule:
         self.refit_predictor_after_vae = bool(refit_predictor_after_vae)
         _check(isinstance(record_start_states, (bool, np.bool_)), f"record_start_states must be True or False, got {record_start_states!r}")
         self.record_start_states = bool(record_start_states)
+        _check(scoring_dtype in SCORING_DTYPES, f"scoring_dtype must be one of {tuple(SCORING_DTYPES)}, got {scoring_dtype!r}")
+        self.scoring_dtype = scoring_dtype
         self._shard_pool: ThreadPoolExecutor | None = None
         self._shard_pool_workers = 0
         self.pretrain_steps = pretrain_steps
@@ -553,7 +566,7 @@ class GoalCuriosityModule:
         self.time_vae = 0.0
         self.time_predictor = 0.0
         self.time_update_wait = 0.0  # waiting for an update that overlapped PPO's (overlap_ppo_update) to finish
-        self._folded = self.predictor.fold()
+        self._folded = self._fold()
         self._sync_encoder()
 
     # ------------------------------------------------------------------ embedding and scoring
@@ -596,6 +609,10 @@ class GoalCuriosityModule:
     def _to_tensor(self) -> Callable[[np.ndarray], th.Tensor]:
         """Raw batch -> the encoder's input on the module's device (picklable, for the scoring process)."""
         return functools.partial(self.adapter.to_tensor, device=self.device)
+
+    def _fold(self) -> FoldedPredictor:
+        """The predictor's inference form for eq 13, in ``scoring_dtype``."""
+        return self.predictor.fold(SCORING_DTYPES[self.scoring_dtype])
 
     def _eq13(self, phi: th.Tensor, goal_parts: th.Tensor, has_goals: np.ndarray, folded: FoldedPredictor) -> th.Tensor:
         """Raw r_gc of states (phi) against their episodes' goals: :func:`~sb3_gocu.curiosity.scoring.eq13_rows`."""
@@ -1284,7 +1301,7 @@ class GoalCuriosityModule:
         self.collect_all()  # scores in flight belong to the old predictor
         t0 = time.perf_counter()
         self._guard_update("predictor", self.predictor, self.predictor_optimizer, fit["snapshot"], fit["skipped"])
-        self._folded = self.predictor.fold()
+        self._folded = self._fold()
         self._refresh_active_goals()
         dt = fit["time"] + time.perf_counter() - t0
         self.time_training += dt
@@ -1554,7 +1571,7 @@ class GoalCuriosityModule:
         self.n_recorded_steps = int(c["n_recorded_steps"])
         self.last_vae_update = int(c["last_vae_update"])
         self.last_predictor_update = int(c["last_predictor_update"])
-        self._folded = self.predictor.fold()
+        self._folded = self._fold()
         envs = state.get("envs")
         if envs is not None:
             n = int(envs["episode_ids"].shape[0])

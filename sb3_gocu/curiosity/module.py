@@ -320,13 +320,14 @@ class GoalCuriosityModule:
         of the scoring's work; bfloat16 rounds their inputs and weights to 8 bits of mantissa, so r_gc differs
         from float32's by about 1e-3 of its range, and runs about 3x faster on a CPU with AVX512-BF16 (slower
         on one without). Only the scoring changes: the predictor trains, and scores its training pairs' prior
-        (eq 15), in float32 (see ``predictor_train_dtype``). Opt-in; see ``benchmarks/bf16_scoring.py`` and the
+        (eq 15), in float32 (see ``train_dtype``). Opt-in; see ``benchmarks/bf16_scoring.py`` and the
         README's "Throughput"
-    :param predictor_train_dtype: dtype of the predictor's forward passes in its updates, ``"float32"``
-        (default) or ``"bfloat16"`` (mixed precision: ``torch.autocast``; the weights, gradients, batch-norm
-        statistics, optimiser state, loss and labels stay float32). A minibatch step of the 5x512 predictor
-        took about half the time (one torch thread, a CPU with AVX512-BF16). Opt-in: it changes the trained
-        predictor, and with it the run a seed gives
+    :param train_dtype: dtype of the forward passes of the VAE's and the predictor's updates (pretraining's
+        included), ``"float32"`` (default) or ``"bfloat16"`` (mixed precision: ``torch.autocast``; the weights,
+        gradients, batch-norm statistics, optimiser state, losses, labels and the VAE's held-out loss for early
+        stopping stay float32). On a CPU with AVX512-BF16 and one torch thread a minibatch step took about half
+        the time for the 5x512 predictor and 0.5-0.65x for the image VAE. Opt-in: it changes the trained
+        networks, and with them the run a seed gives
     :param device: torch device of the networks
     :param seed: seed of the module's random generators
     """
@@ -382,7 +383,7 @@ class GoalCuriosityModule:
         refit_predictor_after_vae: bool = False,
         record_start_states: bool = False,
         scoring_dtype: str = "float32",
-        predictor_train_dtype: str = "float32",
+        train_dtype: str = "float32",
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
@@ -484,8 +485,8 @@ class GoalCuriosityModule:
         self.record_start_states = bool(record_start_states)
         _check(scoring_dtype in SCORING_DTYPES, f"scoring_dtype must be one of {tuple(SCORING_DTYPES)}, got {scoring_dtype!r}")
         self.scoring_dtype = scoring_dtype
-        _check(predictor_train_dtype in SCORING_DTYPES, f"predictor_train_dtype must be one of {tuple(SCORING_DTYPES)}, got {predictor_train_dtype!r}")
-        self.predictor_train_dtype = predictor_train_dtype
+        _check(train_dtype in SCORING_DTYPES, f"train_dtype must be one of {tuple(SCORING_DTYPES)}, got {train_dtype!r}")
+        self.train_dtype = train_dtype
         self._shard_pool: ThreadPoolExecutor | None = None
         self._shard_pool_workers = 0
         self.pretrain_steps = pretrain_steps
@@ -1008,14 +1009,19 @@ class GoalCuriosityModule:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         return max(1, min(self.vae_shards, cores))
 
+    def _train_autocast(self) -> th.autocast:
+        """The mixed-precision context of the updates' forward passes (``train_dtype``; disabled for float32)."""
+        return th.autocast(self.device.type, dtype=SCORING_DTYPES[self.train_dtype], enabled=self.train_dtype != "float32")
+
     def _run_parts(self, parts: list[Callable[[], Any]]) -> list[Any]:
         """Run callables with 1 torch thread each, the first in the calling thread and the others in the shard
-        pool (``_shard_threads`` threads in all); their results in order. Grad mode is the caller's in every
-        thread (it is thread-local in torch)."""
+        pool (``_shard_threads`` threads in all); their results in order. Grad mode and autocast are the
+        caller's in every thread (they are thread-local in torch)."""
         grad = th.is_grad_enabled()
+        autocast = th.is_autocast_enabled(self.device.type)
 
         def one(fn: Callable[[], Any]) -> Any:
-            with torch_threads(1), th.set_grad_enabled(grad):
+            with torch_threads(1), th.set_grad_enabled(grad), th.autocast(self.device.type, dtype=SCORING_DTYPES[self.train_dtype], enabled=autocast):
                 return fn()
 
         workers = self._shard_threads() - 1
@@ -1106,10 +1112,11 @@ class GoalCuriosityModule:
     def _vae_step(self, x: th.Tensor, w: th.Tensor) -> tuple[bool, float]:
         """One optimiser step of the VAE on a minibatch (``vae_shards``); whether it stepped, and the loss."""
         grads = None
-        if self.vae_shards == 1:
-            loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
-        else:
-            loss, grads = sharded_vae_gradients(self.vae, x, self.vae_beta, w, self._torch_gen, self.vae_shards, self._run_parts)
+        with self._train_autocast():  # _run_parts carries it into the parts' threads
+            if self.vae_shards == 1:
+                loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
+            else:
+                loss, grads = sharded_vae_gradients(self.vae, x, self.vae_beta, w, self._torch_gen, self.vae_shards, self._run_parts)
         return self._guarded_step(self.vae, self.vae_optimizer, loss, grads), float(loss.detach())
 
     def _fit_vae(
@@ -1285,14 +1292,13 @@ class GoalCuriosityModule:
             n = len(phi_s)
             weights = th.ones(n, device=phi_s.device) if weights is None else weights
             losses, accs, skipped = [], [], 0
-            autocast = th.autocast(self.device.type, dtype=th.bfloat16, enabled=self.predictor_train_dtype == "bfloat16")
             for epoch in range(self.predictor_epochs):
                 order = th.randperm(n, generator=self._torch_gen)
                 for start in range(0, n, self.predictor_batch_size):
                     idx = order[start : start + self.predictor_batch_size]
                     if len(idx) < 2:  # batch norm needs two samples
                         continue
-                    with autocast:
+                    with self._train_autocast():
                         logits = self.predictor(phi_s[idx], phi_g[idx])
                     logp = th.log_softmax(logits.float(), dim=-1)
                     t, w = target[idx], weights[idx]

@@ -145,6 +145,7 @@ def vae_loss(
     :return: total loss, reconstruction term, KL term
     """
     out, mu, logvar = vae(x, generator, noise)
+    out, mu, logvar = out.float(), mu.float(), logvar.float()  # the loss in float32 also under autocast
     recon = vae.reconstruction_loss(out, x)
     kl = -0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(1)
     if weights is not None:

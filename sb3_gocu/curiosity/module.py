@@ -54,8 +54,8 @@ from sb3_gocu.curiosity.reward import (
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, distinct_rows, observation_key
 
 
-#: ``scoring_dtype`` choices: the dtype of the predictor's hidden layers after the first when scoring eq 13
-SCORING_DTYPES = {"float32": th.float32, "bfloat16": th.bfloat16}
+#: the choices of ``scoring_dtype`` and ``train_dtype``
+DTYPES = {"float32": th.float32, "bfloat16": th.bfloat16}
 
 
 def _check(condition: bool, message: str) -> None:
@@ -318,7 +318,8 @@ class GoalCuriosityModule:
     :param scoring_dtype: dtype of the predictor's hidden layers after the first when scoring states against
         their K goals (eq 13, every step), ``"float32"`` (default) or ``"bfloat16"``. Those layers are nearly all
         of the scoring's work; bfloat16 rounds their inputs and weights to 8 bits of mantissa, so r_gc differs
-        from float32's by about 1e-3 of its range, and runs about 3x faster on a CPU with AVX512-BF16 (slower
+        from float32's by under 1e-3 of its range (at most 6.4e-5 on a trained DoorKey-8x8 agent, where r_gc
+        lies in [0, 0.1]), and runs about 3x faster on a CPU with AVX512-BF16 (slower
         on one without). Only the scoring changes: the predictor trains, and scores its training pairs' prior
         (eq 15), in float32 (see ``train_dtype``). Opt-in; see ``benchmarks/bf16_scoring.py`` and the
         README's "Throughput"
@@ -483,9 +484,9 @@ class GoalCuriosityModule:
         self.refit_predictor_after_vae = bool(refit_predictor_after_vae)
         _check(isinstance(record_start_states, (bool, np.bool_)), f"record_start_states must be True or False, got {record_start_states!r}")
         self.record_start_states = bool(record_start_states)
-        _check(scoring_dtype in SCORING_DTYPES, f"scoring_dtype must be one of {tuple(SCORING_DTYPES)}, got {scoring_dtype!r}")
+        _check(scoring_dtype in DTYPES, f"scoring_dtype must be one of {tuple(DTYPES)}, got {scoring_dtype!r}")
         self.scoring_dtype = scoring_dtype
-        _check(train_dtype in SCORING_DTYPES, f"train_dtype must be one of {tuple(SCORING_DTYPES)}, got {train_dtype!r}")
+        _check(train_dtype in DTYPES, f"train_dtype must be one of {tuple(DTYPES)}, got {train_dtype!r}")
         self.train_dtype = train_dtype
         self._shard_pool: ThreadPoolExecutor | None = None
         self._shard_pool_workers = 0
@@ -622,7 +623,7 @@ class GoalCuriosityModule:
 
     def _fold(self) -> FoldedPredictor:
         """The predictor's inference form for eq 13, in ``scoring_dtype``."""
-        return self.predictor.fold(SCORING_DTYPES[self.scoring_dtype])
+        return self.predictor.fold(DTYPES[self.scoring_dtype])
 
     def _eq13(self, phi: th.Tensor, goal_parts: th.Tensor, has_goals: np.ndarray, folded: FoldedPredictor) -> th.Tensor:
         """Raw r_gc of states (phi) against their episodes' goals: :func:`~sb3_gocu.curiosity.scoring.eq13_rows`."""
@@ -1009,9 +1010,12 @@ class GoalCuriosityModule:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         return max(1, min(self.vae_shards, cores))
 
-    def _train_autocast(self) -> th.autocast:
-        """The mixed-precision context of the updates' forward passes (``train_dtype``; disabled for float32)."""
-        return th.autocast(self.device.type, dtype=SCORING_DTYPES[self.train_dtype], enabled=self.train_dtype != "float32")
+    def _train_autocast(self, enabled: bool | None = None) -> th.autocast:
+        """The mixed-precision context of the updates' forward passes (``train_dtype``).
+
+        :param enabled: None: enabled unless ``train_dtype`` is float32"""
+        enabled = self.train_dtype != "float32" if enabled is None else enabled
+        return th.autocast(self.device.type, dtype=DTYPES[self.train_dtype], enabled=enabled)
 
     def _run_parts(self, parts: list[Callable[[], Any]]) -> list[Any]:
         """Run callables with 1 torch thread each, the first in the calling thread and the others in the shard
@@ -1021,7 +1025,7 @@ class GoalCuriosityModule:
         autocast = th.is_autocast_enabled(self.device.type)
 
         def one(fn: Callable[[], Any]) -> Any:
-            with torch_threads(1), th.set_grad_enabled(grad), th.autocast(self.device.type, dtype=SCORING_DTYPES[self.train_dtype], enabled=autocast):
+            with torch_threads(1), th.set_grad_enabled(grad), self._train_autocast(autocast):
                 return fn()
 
         workers = self._shard_threads() - 1

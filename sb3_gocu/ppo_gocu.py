@@ -88,6 +88,11 @@ class PPO_GoCu(PPO):
         Python's 5 ms, the rollout thread often waits for the GIL to come back from the worker after a numpy or
         torch call; at 0.5 ms it gets it back sooner (measured on DoorKey-8x8, README "Throughput"). Does not
         change any value computed
+    :param scoring_lag: (``async_scoring``) how many steps later a step's r_gc is collected: up to this many
+        steps are scored in the worker while the envs step on (>= 1). The number of states new to their
+        episode varies from step to step, so a deeper queue lets the worker catch up after a step with many
+        of them instead of the rollout waiting. The rewards are the same bit for bit (the worker scores the
+        steps in order); a step's ``infos["gocu_*"]`` entries are written ``scoring_lag`` steps later
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -107,8 +112,12 @@ class PPO_GoCu(PPO):
         curiosity_kwargs: dict[str, Any] | None = None,
         async_scoring: bool = True,
         switch_interval: float | None = 5e-4,
+        scoring_lag: int = 1,
         **kwargs: Any,
     ) -> None:
+        if isinstance(scoring_lag, bool) or not isinstance(scoring_lag, (int, np.integer)) or scoring_lag < 1:
+            raise ValueError(f"scoring_lag must be an int >= 1, got {scoring_lag!r}")
+        self.scoring_lag = int(scoring_lag)
         if switch_interval is not None and not (isinstance(switch_interval, (int, float)) and 0 < switch_interval <= 1):
             raise ValueError(f"switch_interval must be None or a number of seconds in (0, 1], got {switch_interval!r}")
         self.switch_interval = switch_interval
@@ -305,7 +314,7 @@ class PPO_GoCu(PPO):
                 if gocu is not None:
                     waiting.append((gocu.deferred, None))
                     gocu.deferred = None
-                    while len(waiting) > 1:
+                    while len(waiting) > self.scoring_lag:
                         self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
                     intrinsic = np.zeros(env.num_envs, dtype=np.float32)
                 else:

@@ -1,5 +1,6 @@
 """Scoring in a worker process (``scoring_process=True``): the same values as scoring in the caller, bit for bit."""
 
+import sys
 import threading
 
 import numpy as np
@@ -9,6 +10,7 @@ from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_gocu import GoalCuriosityModule, PPO_GoCu
+from sb3_gocu.curiosity import scoring
 from sb3_gocu.curiosity.scoring import ProcessScorer
 
 from conftest import SMALL_CURIOSITY, ChainEnv
@@ -65,10 +67,12 @@ def test_module_scores_the_same_in_a_process_as_in_the_caller():
     assert m_other.time_inference_background > 0 and m_other.cpu_inference_background > 0
 
 
-def test_many_tickets_in_flight_do_not_block_the_pipes():
+def test_many_tickets_in_flight_do_not_block_the_pipes(monkeypatch):
     """The answers not read yet stay below ``max_answer_bytes``: a caller that submits many tickets before it
     collects is not stuck writing to a child stuck writing its answers.
-    Here 20 tickets of 64 new frames each are in flight, about 33 KB of answer each."""
+    Here the pipes are kept at 64 KiB and 40 tickets of 64 new frames each are in flight, about 3.3 KB of
+    answer each: 130 KB in all, twice the answer pipe."""
+    monkeypatch.setattr(scoring, "PIPE_BYTES", 64 * 1024)
     rng = np.random.default_rng(0)
     frames = rng.integers(0, 256, (40, 64, 16, 16, 3), dtype=np.uint8)  # all new: every row embedded and scored
     dones = np.zeros((40, 64), dtype=bool)
@@ -81,6 +85,7 @@ def test_many_tickets_in_flight_do_not_block_the_pipes():
     for (r1, n1), (r2, n2) in zip(sync, result["out"][0]):
         assert np.array_equal(r1, r2) and np.array_equal(n1, n2)
     assert result["out"][1]._process._answer_bytes == 0
+    assert result["out"][1]._process.pipe_bytes == (64 * 1024, 64 * 1024)
 
 
 def test_phi_of_a_ticket_in_flight_is_taken_from_the_process():
@@ -100,24 +105,38 @@ def test_phi_of_a_ticket_in_flight_is_taken_from_the_process():
 
 
 def test_ppo_gocu_with_a_scoring_process_matches_the_synchronous_run():
+    """Also with 5 steps in flight (``scoring_lag``), collected in order across the rollout's end."""
     runs = []
-    for kwargs in (dict(async_scoring=False), dict(async_scoring=True, scoring_process=True)):
+    settings = (dict(async_scoring=False), dict(async_scoring=True, scoring_process=True), dict(async_scoring=True, scoring_process=True, scoring_lag=5))
+    for kwargs in settings:
         process = kwargs.pop("scoring_process", False)
         th.manual_seed(0)
         env = make_vec_env(lambda: ChainEnv(), n_envs=2, seed=0)
         curiosity = {**SMALL_CURIOSITY, "predictor_train_freq": 128, "scoring_process": process}
         model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=2, seed=0, curiosity_kwargs=curiosity, **kwargs)
+        in_flight = []  # tickets outstanding at each collection
+        collect = model.curiosity.collect
+        model.curiosity.collect = lambda ticket, _c=collect, _m=model.curiosity: in_flight.append(len(_m._outstanding)) or _c(ticket)
         model.learn(640)
+        model.max_in_flight = max(in_flight, default=0)
         runs.append(model)
-    a, b = runs
-    assert b.curiosity._process is not None and b.curiosity._scorer is None
-    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
+    a = runs[0]
     assert a.rollout_buffer.intrinsic_rewards.any()
-    for (k, v), (k2, v2) in zip(a.policy.state_dict().items(), b.policy.state_dict().items()):
-        assert k == k2 and th.equal(v, v2), k
-    sa, sb = a.curiosity.state_dict(), b.curiosity.state_dict()
-    for net in ("vae", "predictor"):
-        assert all(th.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
+    for b in runs[1:]:
+        assert b.curiosity._process is not None and b.curiosity._scorer is None
+        assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
+        for (k, v), (k2, v2) in zip(a.policy.state_dict().items(), b.policy.state_dict().items()):
+            assert k == k2 and th.equal(v, v2), k
+        sa, sb = a.curiosity.state_dict(), b.curiosity.state_dict()
+        for net in ("vae", "predictor"):
+            assert all(th.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
+    assert [m.max_in_flight for m in runs[1:]] == [2, 6]  # the step just submitted and up to scoring_lag before it
+
+
+@pytest.mark.parametrize("lag", [0, -1, 1.5, True, "2"])
+def test_scoring_lag_is_checked(lag):
+    with pytest.raises(ValueError, match=f"scoring_lag must be an int >= 1, got {lag!r}"):
+        PPO_GoCu("MlpPolicy", make_vec_env(ChainEnv, n_envs=2, seed=0), scoring_lag=lag)
 
 
 def test_a_dead_scoring_process_is_a_clear_error():
@@ -139,6 +158,8 @@ def test_scoring_process_default_and_start():
     assert model.curiosity._process is None
     model.learn(64)
     assert model.curiosity._process is not None and model.curiosity._process.bytes_sent > 0
+    if sys.platform.startswith("linux"):  # pipes of 1 MiB: a ticket with an env's new goal halves (~100 KB) fits
+        assert model.curiosity._process.pipe_bytes == (scoring.PIPE_BYTES, scoring.PIPE_BYTES) == (1 << 20, 1 << 20)
     thread = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, scoring_process=False)
     with pytest.raises(ValueError, match="scores in a thread"):
         thread.start_scoring_process()

@@ -198,7 +198,14 @@ def main() -> None:
     parser.add_argument("--also-curiosity-kwargs", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with these GoalCuriosityModule keywords on top of --curiosity-kwargs, "
                         "e.g. '{\"scoring_process\": true}' (another run each time the option is given)")
+    parser.add_argument("--also-arm", action="append", default=None, metavar="JSON",
+                        help="also run PPO_GoCu with both kinds of setting, e.g. '{\"curiosity\": {\"scoring_dtype\": \"bfloat16\"}, "
+                        "\"model\": {\"scoring_lag\": 4}}' (another run each time the option is given)")
     args = parser.parse_args()
+    arms = [json.loads(a) for a in args.also_arm or []]
+    for arm in arms:
+        if not isinstance(arm, dict) or not set(arm) <= {"curiosity", "model"}:
+            parser.error(f"--also-arm must be a JSON object with the keys 'curiosity' and/or 'model', got {arm!r}")
     th.set_num_threads(args.threads)
     curiosity_kwargs = json.loads(args.curiosity_kwargs)
     malloc = "glibc default (dynamic thresholds)"
@@ -231,6 +238,10 @@ def main() -> None:
         results[f"ppo_gocu_curiosity_{i}"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
                                                  overrides=json.loads(extra))
         labels_extra[f"ppo_gocu_curiosity_{i}"] = extra
+    for i, (text, arm) in enumerate(zip(args.also_arm or [], arms)):
+        results[f"ppo_gocu_arm_{i}"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
+                                           overrides=arm.get("curiosity"), model_attrs=arm.get("model"))
+        labels_extra[f"ppo_gocu_arm_{i}"] = text
     if args.also_sync:
         results["ppo_gocu_sync"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, async_scoring=False)
     ppo, gocu = results["ppo"], results["ppo_gocu"]

@@ -79,9 +79,10 @@ class PPO_GoCu(PPO):
         ``goal_strategy``, ``reward_scale``, ...); its ``intrinsic_gamma`` is the curiosity stream's discount
     :param async_scoring: score the curiosity of each rollout step in the module's worker while the envs take the
         next step: a process by default, a thread with ``curiosity_kwargs={"scoring_process": False}`` (see
-        :class:`~sb3_gocu.GoalCuriosityModule`). The rewards are the same bit for bit; a step's ``infos["gocu_*"]`` entries are written one step
-        later (at the rollout end for the last step), so a callback reading them in ``on_step`` sees the previous
-        step's. Used when the training env has one :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``)
+        :class:`~sb3_gocu.GoalCuriosityModule`). The rewards are the same bit for bit; a step's ``infos["gocu_*"]``
+        entries are written ``scoring_lag`` steps later (at the rollout end for the last steps), so a callback
+        reading them in ``on_step`` sees those of an earlier step. Used when the training env has one
+        :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``)
     :param switch_interval: the interpreter's GIL switch interval in seconds (``sys.setswitchinterval``) while a
         rollout scores in the worker thread, and while PPO's update runs beside a curiosity update
         (``overlap_ppo_update``), restored afterwards; ``None`` leaves it alone. At
@@ -91,8 +92,10 @@ class PPO_GoCu(PPO):
     :param scoring_lag: (``async_scoring``) how many steps later a step's r_gc is collected: up to this many
         steps are scored in the worker while the envs step on (>= 1). The number of states new to their
         episode varies from step to step, so a deeper queue lets the worker catch up after a step with many
-        of them instead of the rollout waiting. The rewards are the same bit for bit (the worker scores the
-        steps in order); a step's ``infos["gocu_*"]`` entries are written ``scoring_lag`` steps later
+        of them instead of the rollout waiting: on DoorKey-8x8 over 400k steps the rollouts waited 17.4 s for
+        the scores with 4 against 26.5 s with 1 (same run, README "Throughput"). The rewards are the same bit
+        for bit (the worker scores the steps in order; tested); a step's ``infos["gocu_*"]`` entries are
+        written ``scoring_lag`` steps later (the last ones at the rollout's end)
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -112,7 +115,7 @@ class PPO_GoCu(PPO):
         curiosity_kwargs: dict[str, Any] | None = None,
         async_scoring: bool = True,
         switch_interval: float | None = 5e-4,
-        scoring_lag: int = 1,
+        scoring_lag: int = 4,
         **kwargs: Any,
     ) -> None:
         if isinstance(scoring_lag, bool) or not isinstance(scoring_lag, (int, np.integer)) or scoring_lag < 1:

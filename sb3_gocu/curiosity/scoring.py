@@ -83,22 +83,6 @@ def score_rows(
     return eq13_rows(th.from_numpy(phi), goal_parts, has_goals, folded, *eq13_args).numpy()
 
 
-PIPE_BYTES = 1 << 20  # Linux's default /proc/sys/fs/pipe-max-size
-
-
-def _grow_pipe(fd: int) -> int:
-    """Ask the kernel for a pipe buffer of :data:`PIPE_BYTES` (Linux); :return: the pipe's size (64 KiB where
-    it cannot be changed)."""
-    size = PIPE_BYTES
-    try:
-        import fcntl
-
-        fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, size)
-        return int(fcntl.fcntl(fd, fcntl.F_GETPIPE_SZ))
-    except (ImportError, AttributeError, OSError):  # not Linux, or above the system's limit
-        return 64 * 1024
-
-
 class _ProcessFuture:
     """What :meth:`ProcessScorer.submit` returns: ``result()`` waits for the process's answer (the rewards)."""
 
@@ -135,10 +119,6 @@ class ProcessScorer:
             raise ValueError(f"num_threads must be >= 1, got {num_threads}")
         to_child_r, to_child_w = os.pipe()
         from_child_r, from_child_w = os.pipe()
-        # a ticket that brings an env's new goal halves is about 100 KB (K = 50, h = 512): larger than a default pipe
-        # (64 KiB), the caller's write would wait for the child to finish the ticket before and read it
-        request_bytes = _grow_pipe(to_child_w)
-        answer_bytes = _grow_pipe(from_child_w)
         code = f"from sb3_gocu.curiosity.scoring import _serve; _serve({to_child_r}, {from_child_w}, {num_threads})"
         self._proc = subprocess.Popen(
             [sys.executable, "-c", code],
@@ -157,8 +137,7 @@ class ProcessScorer:
         self._goal_versions: dict[int, int] = {}
         self._next_tid = 0
         self._in_flight: list[_ProcessFuture] = []  # in submission order, answers not received yet
-        self.max_answer_bytes = answer_bytes // 2  # bound on their answers' sizes (see submit)
-        self.pipe_bytes = (request_bytes, answer_bytes)
+        self.max_answer_bytes = 32 * 1024  # bound on their answers' sizes (see submit)
         self.bytes_sent = 0
 
     @staticmethod
@@ -193,7 +172,7 @@ class ProcessScorer:
         """
         if self._proc.poll() is not None:
             raise self._ended()
-        # the child answers in order into a pipe that holds pipe_bytes[1]: if the answers not read yet outgrew it, the
+        # the child answers in order into a pipe that holds 64 KiB: if the answers not read yet outgrew it, the
         # child would block writing one and stop reading, and this write could block too (a caller submitting many
         # tickets before collecting). Read answers first while they would pass the bound.
         answer_bytes = len(ticket.miss) * (ticket.phi.shape[1] + 1) * 4 + 1024

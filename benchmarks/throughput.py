@@ -116,6 +116,7 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         model.async_scoring = async_scoring
         for name, value in overrides.items():
             setattr(model.curiosity, name, value)
+        model.curiosity._folded = model.curiosity._fold()  # a scoring_dtype override takes effect at once
     else:
         curiosity_kwargs = {**curiosity_kwargs, **overrides}
         model = PPO_GoCu("CnnPolicy", venv, seed=seed, curiosity_kwargs=curiosity_kwargs, async_scoring=async_scoring, **PPO_SETTINGS)

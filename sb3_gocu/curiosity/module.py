@@ -47,7 +47,6 @@ from sb3_gocu.curiosity.reward import (
     REVISIT_DECAYS,
     IntrinsicReturnNormalizer,
     complexity_score,
-    curiosity_reward,
     mastered_probability,
     revisit_factor,
 )

@@ -211,6 +211,7 @@ def threads_seen_by_the_fits(module: GoalCuriosityModule, monkeypatch) -> list[t
     (dict(update_threads=2, overlap_ppo_update=True), 1, 2),  # overlapped with PPO's update, then waited for
     (dict(update_threads=3, train_in_background=True), 1, 3),  # beside the rollout
     (dict(update_threads=1, overlap_ppo_update=True), 2, 1),
+    (dict(split_updates=False), 1, 1),
 ])
 def test_updates_run_with_their_thread_count_and_leave_the_callers_alone(variant, caller, expected, monkeypatch):
     """update_threads: every minibatch of both fits runs with the stated count, in a worker thread when the
@@ -225,7 +226,9 @@ def test_updates_run_with_their_thread_count_and_leave_the_callers_alone(variant
     assert th.get_num_threads() == caller, "the caller's count is restored"
     assert {name for name, _, _ in seen} == {"vae", "predictor"}
     assert {n for _, n, _ in seen} == {expected}
-    in_worker = variant.get("overlap_ppo_update") or variant.get("train_in_background")
+    # an update in place with one torch thread and split_updates runs in a thread of its own (the caller helps it)
+    helped = module.split_updates and expected == 1
+    in_worker = variant.get("overlap_ppo_update") or variant.get("train_in_background") or helped
     assert {ident == main for _, _, ident in seen} == {not in_worker}
 
 

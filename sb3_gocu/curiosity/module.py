@@ -41,6 +41,7 @@ from gymnasium import spaces
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, sharded_vae_gradients, vae_loss
 from sb3_gocu.curiosity.observations import ObservationAdapter
+from sb3_gocu.curiosity.parallel import SplitWork, splitting
 from sb3_gocu.curiosity.scoring import ProcessScorer, eq13_rows, score_rows
 from sb3_gocu.curiosity.reward import (
     AGGREGATIONS,
@@ -328,6 +329,16 @@ class GoalCuriosityModule:
         stopping stay float32). On a CPU with AVX512-BF16 and one torch thread a minibatch step took about half
         the time for the 5x512 predictor and 0.5-0.65x for the image VAE. Opt-in: it changes the trained
         networks, and with them the run a seed gives
+    :param split_updates: compute the large matrix products of the VAE's and the predictor's updates (linear
+        layers and convolutions whose widths are multiples of 32; forward, backward and the labels' prior) in two
+        halves cut along their output columns, and let a thread that waits for the update compute the second
+        halves (``sb3_gocu.curiosity.parallel``): the training thread while it waits for an update overlapped with
+        PPO's (``overlap_ppo_update``), or the caller of an update run in place (pretraining included), which
+        then runs the update in a thread of its own. A column cut leaves every sum as it was, so the trained
+        networks are the same to the bit as with whole products (tested for the default networks); halves are
+        always computed the same way, so the values do not depend on who computes them or when. Only with one
+        torch thread for the update, ``train_dtype="float32"`` and (for the VAE) ``vae_shards=1``; otherwise
+        the products stay whole. Measured on DoorKey-8x8 in README, Results, "Throughput"
     :param device: torch device of the networks
     :param seed: seed of the module's random generators
     """
@@ -384,6 +395,7 @@ class GoalCuriosityModule:
         record_start_states: bool = False,
         scoring_dtype: str = "float32",
         train_dtype: str = "float32",
+        split_updates: bool = True,
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
@@ -487,6 +499,9 @@ class GoalCuriosityModule:
         self.scoring_dtype = scoring_dtype
         _check(train_dtype in DTYPES, f"train_dtype must be one of {tuple(DTYPES)}, got {train_dtype!r}")
         self.train_dtype = train_dtype
+        _check(isinstance(split_updates, (bool, np.bool_)), f"split_updates must be True or False, got {split_updates!r}")
+        self.split_updates = bool(split_updates)
+        self._split = SplitWork()
         self._shard_pool: ThreadPoolExecutor | None = None
         self._shard_pool_workers = 0
         self.pretrain_steps = pretrain_steps
@@ -543,6 +558,7 @@ class GoalCuriosityModule:
         self._job: threading.Thread | None = None
         self._job_result: dict[str, Any] = {}
         self._job_until_next_use = False  # the running update is taken into use before the module is next used
+        self._job_finished = threading.Event()  # set when the running update's fits end (split_updates' helper stops)
         self._unreported: dict[str, float] = {}  # statistics of updates taken into use outside maybe_train
         self.embedding_cache_size = 100_000
         self._next_episode_id = 0
@@ -1042,6 +1058,40 @@ class GoalCuriosityModule:
             rest = [f.result() for f in futures]  # every part ends before the weights move on
         return [first, *rest]
 
+    def _split_work(self, vae: bool = False) -> SplitWork | None:
+        """Where an update's split products post their second halves (``split_updates``; call it in the fit's
+        thread, with the fit's torch threads set), or None: the products stay whole (``split_updates`` off, more
+        than one torch thread, bfloat16 training, or a sharded VAE step)."""
+        if not self.split_updates or th.get_num_threads() != 1 or self.train_dtype != "float32" or (vae and self.vae_shards > 1):
+            return None
+        return self._split
+
+    def _helped(self, fit: Callable[[], Any]) -> Any:
+        """``fit()`` for an update run in place (pretraining, ``train_vae``, ``train_predictor``, no
+        ``overlap_ppo_update``): with ``split_updates`` it runs in a thread of its own while this thread
+        computes halves of its products (the values are the same either way)."""
+        if not self.split_updates or self.train_dtype != "float32" or self._update_thread_count() != 1:
+            return fit()
+        out: dict[str, Any] = {}
+        finished = threading.Event()
+
+        def body() -> None:
+            try:
+                out["fit"] = fit()
+            except BaseException as error:
+                out["error"] = error
+            finally:
+                finished.set()
+                self._split.wake()
+
+        thread = threading.Thread(target=body, name="gocu-update", daemon=True)
+        thread.start()
+        self._split.help(finished)
+        thread.join()
+        if "error" in out:
+            raise out["error"]
+        return out["fit"]
+
     # VAE update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
     def _prepare_vae(self, epochs: int | None, patience: int | None = None) -> dict[str, Any] | None:
         epochs = self.vae_epochs if epochs is None else epochs
@@ -1142,7 +1192,7 @@ class GoalCuriosityModule:
         :param patience: early stopping's patience (None: ``vae_patience``)
         """
         patience = self.vae_patience if patience is None else patience
-        with torch_threads(threads):
+        with torch_threads(threads), splitting(self._split_work(vae=True)):
             t0 = time.perf_counter()
             snapshot = self._snapshot(self.vae, self.vae_optimizer)
             early = val_data is not None and val_weights is not None and patience > 0
@@ -1223,7 +1273,7 @@ class GoalCuriosityModule:
         """
         self.finish_background_update()
         job = self._prepare_vae_update(epochs, patience)
-        return {} if job is None else self._finish_vae(self._fit_vae_job(job))
+        return {} if job is None else self._finish_vae(self._helped(functools.partial(self._fit_vae_job, job)))
 
     def pretrain(self) -> dict[str, float]:
         """Train the VAE on what the memory bank holds (the random-policy observations) and mark the module
@@ -1286,7 +1336,7 @@ class GoalCuriosityModule:
         :param on_epoch: called with the epoch number after each epoch (the predictor is in train mode), for probes
         :param threads: torch threads of the fit (None: the calling thread's)
         """
-        with torch_threads(threads):
+        with torch_threads(threads), splitting(self._split_work()):
             t0 = time.perf_counter()
             p_skill = self.label_pairs(phi_s, phi_g, dist)
             target = p_skill if self.soft_labels else th.bernoulli(p_skill.nan_to_num(0.5), generator=self._torch_gen)
@@ -1346,7 +1396,7 @@ class GoalCuriosityModule:
         """
         self.finish_background_update()
         job = self._prepare_predictor()
-        return {} if job is None else self._finish_predictor(self._fit_predictor(**job))
+        return {} if job is None else self._finish_predictor(self._helped(functools.partial(self._fit_predictor, **job)))
 
     # scheduling
     def maybe_train(self) -> dict[str, float]:
@@ -1382,14 +1432,15 @@ class GoalCuriosityModule:
             return out
         self._job_until_next_use = not self.train_in_background
         self._job_result = {"jobs": jobs, "fits": [], "error": None}
+        self._job_finished = threading.Event()
         self._job = threading.Thread(target=self._background, name="gocu-update", daemon=True)
         self._job.start()
         return out
 
     def _run_job(self, name: str, job: dict[str, Any]) -> dict[str, float]:
         if name == "predictor":
-            return self._finish_predictor(self._fit_predictor(**job))
-        return self._finish_vae(self._fit_vae_job(job))
+            return self._finish_predictor(self._helped(functools.partial(self._fit_predictor, **job)))
+        return self._finish_vae(self._helped(functools.partial(self._fit_vae_job, job)))
 
     def _background(self) -> None:
         try:
@@ -1397,6 +1448,9 @@ class GoalCuriosityModule:
                 self._job_result["fits"].append((name, self._fit_predictor(**job) if name == "predictor" else self._fit_vae_job(job)))
         except BaseException as error:  # re-raised in the caller's thread by finish_background_update
             self._job_result["error"] = error
+        finally:
+            self._job_finished.set()
+            self._split.wake()
 
     @property
     def update_running(self) -> bool:
@@ -1417,6 +1471,8 @@ class GoalCuriosityModule:
         if self._job is None:
             return {}
         t0 = time.perf_counter()
+        if self.split_updates:
+            self._split.help(self._job_finished)  # this thread computes halves of the update's products meanwhile
         self._job.join()
         if self._job_until_next_use:
             self.time_update_wait += time.perf_counter() - t0

@@ -1,0 +1,165 @@
+"""Column-split products (``split_updates``): the same values to the bit as the whole products, whoever
+computes the halves, and a helping thread really takes halves."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import torch as th
+from torch import nn
+
+from sb3_gocu.curiosity.module import torch_threads
+from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE, vae_loss
+from sb3_gocu.curiosity.parallel import SplitConv2d, SplitLinear, SplitWork, splitting
+
+
+def _params(net: nn.Module) -> th.Tensor:
+    return th.cat([t.detach().flatten().float() for t in [*net.parameters(), *net.buffers()]])
+
+
+def _train_predictor(steps: int = 6, embed: int = 16, hidden: tuple[int, ...] = (64, 64, 32), batch: int = 32) -> tuple[th.Tensor, th.Tensor]:
+    th.manual_seed(0)
+    net = MasteryPredictor(embed, hidden)
+    opt = th.optim.Adam(net.parameters(), lr=1e-3)
+    g = th.Generator().manual_seed(1)
+    for _ in range(steps):
+        s, goal, t = th.randn(batch, embed, generator=g), th.randn(batch, embed, generator=g), th.rand(batch, generator=g)
+        logp = th.log_softmax(net(s, goal), dim=-1)
+        loss = -(t * logp[:, 1] + (1 - t) * logp[:, 0]).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    net.eval()
+    with th.no_grad():
+        probe = net.mastery(th.randn(50, embed, generator=g), th.randn(50, embed, generator=g))
+    return _params(net), probe
+
+
+def _train_vae(image: bool, steps: int = 4, side: int = 12, embed: int = 32, latent: int = 4, batch: int = 16) -> th.Tensor:
+    th.manual_seed(0)
+    vae = ConvVAE((3, side, side), embed_dim=embed, latent_dim=latent) if image else MlpVAE((20,), embed_dim=embed, latent_dim=latent)
+    opt = th.optim.Adam(vae.parameters(), lr=1e-3)
+    g, noise = th.Generator().manual_seed(2), th.Generator().manual_seed(3)
+    vae.train()
+    for _ in range(steps):
+        x = th.rand(batch, 3, side, side, generator=g) if image else th.randn(batch, 20, generator=g)
+        loss, _, _ = vae_loss(vae, x, 1.0, th.rand(batch, generator=g) + 0.5, generator=noise)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return _params(vae)
+
+
+def _in_thread(fn, work: SplitWork, help: bool):
+    """fn() in a thread of its own inside ``splitting(work)``; with ``help``, this thread helps until it ends."""
+    out: dict = {}
+    finished = threading.Event()
+
+    def body() -> None:
+        try:
+            with torch_threads(1), splitting(work):
+                out["value"] = fn()
+        finally:
+            finished.set()
+            work.wake()
+
+    t = threading.Thread(target=body)
+    t.start()
+    if help:
+        work.help(finished)
+    t.join()
+    return out["value"]
+
+
+CASES = {
+    "predictor": _train_predictor,
+    "conv_vae": lambda: _train_vae(True),
+    "mlp_vae": lambda: _train_vae(False),
+    # the defaults' networks and minibatches: 5x512 predictor on 128-wide embeddings, the 32x32 image VAE
+    "paper_predictor": lambda: _train_predictor(steps=3, embed=128, hidden=(512,) * 5, batch=128),
+    "paper_vae": lambda: _train_vae(True, steps=2, side=32, embed=128, latent=10, batch=128),
+}
+
+
+@pytest.mark.parametrize("train", list(CASES.values()), ids=list(CASES))
+def test_split_updates_give_the_whole_products_values(train) -> None:
+    with torch_threads(1):
+        whole = train()
+    alone = _in_thread(train, SplitWork(), help=False)  # the update's thread computes both halves
+    helped = _in_thread(train, SplitWork(), help=True)  # this thread takes the halves it can
+    flat = lambda v: th.cat([t.flatten() for t in v]) if isinstance(v, tuple) else v  # noqa: E731
+    assert th.equal(flat(whole), flat(alone))
+    assert th.equal(flat(whole), flat(helped))
+
+
+def _helper_thread(work: SplitWork) -> tuple[threading.Thread, threading.Event]:
+    """A thread inside ``work.help`` (returned once it is there) and the event that ends its help."""
+    finished = threading.Event()
+    helper = threading.Thread(target=work.help, args=(finished,))
+    helper.start()
+    for _ in range(500):
+        if work.helpers == 1:
+            break
+        threading.Event().wait(0.01)
+    assert work.helpers == 1
+    return helper, finished
+
+
+def test_a_waiting_thread_takes_halves() -> None:
+    work = SplitWork()
+    helper, finished = _helper_thread(work)
+    ran_in, release = [], threading.Event()
+
+    def first() -> str:
+        release.wait(5)  # returns once the helper has run the second half
+        ran_in.append(threading.current_thread())
+        return "a"
+
+    def second() -> str:
+        ran_in.append(threading.current_thread())
+        release.set()
+        return "b"
+
+    assert work.run2(first, second) == ("a", "b")
+    finished.set()
+    work.wake()
+    helper.join(5)
+    assert ran_in == [helper, threading.current_thread()]  # the helper ran the second half, here the first
+    assert work.helpers == 0
+    # with nobody helping, both halves run here, in order
+    order: list[str] = []
+    assert work.run2(lambda: order.append("a") or 1, lambda: order.append("b") or 2) == (1, 2) and order == ["a", "b"]
+
+
+def test_a_helpers_error_reaches_the_update() -> None:
+    work = SplitWork()
+    helper, finished = _helper_thread(work)
+
+    def bad() -> None:
+        raise ValueError("half failed")
+
+    with pytest.raises(ValueError, match="half failed"):
+        work.run2(lambda: threading.Event().wait(0.5), bad)
+    finished.set()
+    work.wake()
+    helper.join(5)
+    assert not helper.is_alive()
+
+
+def test_split_layers_are_the_plain_layers_outside_splitting() -> None:
+    th.manual_seed(0)
+    lin = SplitLinear(32, 64)
+    th.manual_seed(0)
+    ref = nn.Linear(32, 64)
+    assert th.equal(lin.weight, ref.weight) and th.equal(lin.bias, ref.bias)  # same initialisation draws
+    assert set(lin.state_dict()) == set(ref.state_dict())
+    conv = SplitConv2d(3, 32, 3, padding=1)
+    x = th.randn(2, 3, 5, 5)
+    assert th.equal(conv(x), nn.functional.conv2d(x, conv.weight, conv.bias, padding=1))
+    assert lin(th.randn(4, 32)).grad_fn.name() != "_SplitLinearFnBackward"
+    with splitting(SplitWork()):
+        assert lin(th.randn(4, 32)).grad_fn.name() == "_SplitLinearFnBackward"
+        assert conv(x).grad_fn.name() == "_SplitConvFnBackward"
+        for narrow in (SplitLinear(32, 20), SplitLinear(10, 64)):  # widths not multiples of SPLIT_MULTIPLE: whole
+            assert narrow(th.randn(4, narrow.in_features)).grad_fn.name() != "_SplitLinearFnBackward"

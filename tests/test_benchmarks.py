@@ -318,3 +318,21 @@ def test_embedding_phases_refit_leaves_the_model_as_it_was(ep, two_runs):
     for key in ("pixels", "phi"):
         assert r[key]["step"] > 0 and r[key]["carried/step"] == pytest.approx(r[key]["carried"] / r[key]["step"])
     assert r["refits"][0]["step"] != r["phi"]["step"]
+
+
+def test_split_updates_benchmark_finds_the_same_weights():
+    """benchmarks/split_updates.py, tiny: both fits and a short DoorKey-5x5 run give the same weights with and
+    without split_updates, and the run with it posted halves to the waiting thread."""
+    bench = load_script("split_updates", "benchmarks/split_updates.py")
+    threads = th.get_num_threads()
+    try:
+        out = bench.main(["--repeats", "1", "--pairs", "512", "--images", "256", "--vae-epochs", "1",
+                          "--learn-steps", "2048", "--env", "GoCu/DoorKey-5x5-v0"])
+    finally:
+        th.set_num_threads(threads)
+    assert [r["fit"] for r in out["fits"]] == ["predictor", "vae"]
+    assert all(r["same_weights"] and r["whole_s"] > 0 and r["split_s"] > 0 for r in out["fits"])
+    off, on = out["learn"]
+    assert (off["split_updates"], on["split_updates"]) == (False, True)
+    assert off["weights"] == on["weights"]
+    assert off["halves_posted"] == 0 and on["halves_posted"] > 0  # the pretraining's fit was helped

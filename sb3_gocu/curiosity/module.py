@@ -298,7 +298,8 @@ class GoalCuriosityModule:
     :param update_threads: torch threads of a VAE or predictor update (pretraining's included). ``None``
         (default): the caller's ``torch.get_num_threads()``. An update that training waits for (in place, or
         overlapped with PPO's update and then waited for) leaves the caller's share of the machine and the
-        scoring worker's idle, so 2 on a 2-core machine with 1 torch thread uses both: on DoorKey-8x8 over 400k
+        scoring worker's idle (but for the halves of its large products that ``split_updates`` gives the caller,
+        same values), so 2 on a 2-core machine with 1 torch thread uses both: on DoorKey-8x8 over 400k
         steps PPO_GoCu's time per step was 1.27x plain PPO's with 2 against 1.38x with 1 (same run; README,
         Results, "Throughput"). It is opt-in: some matrix products split their sums by thread, so the count
         changes the updates' low bits and with them the run a seed gives, and the 3-seed DoorKey-8x8 figures

@@ -147,6 +147,36 @@ def test_a_helpers_error_reaches_the_update() -> None:
     assert not helper.is_alive()
 
 
+def test_an_interrupt_in_a_helped_half_stops_both_threads() -> None:
+    """Ctrl-C while the waiting thread computes a half: it reaches that thread (which stops helping) and the
+    update's thread, which re-raises it from run2."""
+    work = SplitWork()
+    finished, seen = threading.Event(), []
+
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    def update() -> None:
+        for _ in range(500):  # post once this thread's help below has begun
+            if work.helpers:
+                break
+            threading.Event().wait(0.01)
+        try:
+            work.run2(lambda: threading.Event().wait(0.5), interrupted)
+        except KeyboardInterrupt:
+            seen.append("update")
+        finished.set()
+        work.wake()
+
+    t = threading.Thread(target=update)
+    t.start()
+    with pytest.raises(KeyboardInterrupt):
+        work.help(finished)
+    seen.append("helper")
+    t.join(5)
+    assert seen == ["helper", "update"] and work.helpers == 0
+
+
 def test_split_layers_are_the_plain_layers_outside_splitting() -> None:
     th.manual_seed(0)
     lin = SplitLinear(32, 64)

@@ -53,7 +53,10 @@ class _Half:
                 self.result = self.fn()
         except BaseException as error:  # re-raised in the thread that posted it
             self.error = error
-        self.done.set()
+            if not isinstance(error, Exception):
+                raise  # a KeyboardInterrupt (or SystemExit) also stops the helping thread
+        finally:
+            self.done.set()
 
 
 class SplitWork:

@@ -330,12 +330,13 @@ class GoalCuriosityModule:
         stopping stay float32). On a CPU with AVX512-BF16 and one torch thread a minibatch step took about half
         the time for the 5x512 predictor and 0.5-0.65x for the image VAE. Opt-in: it changes the trained
         networks, and with them the run a seed gives
-    :param split_updates: compute the large matrix products of the VAE's and the predictor's updates (linear
-        layers and convolutions whose widths are multiples of 32; forward, backward and the labels' prior) in two
-        halves cut along their output columns, and let a thread that waits for the update compute the second
-        halves (``sb3_gocu.curiosity.parallel``): the training thread while it waits for an update overlapped with
-        PPO's (``overlap_ppo_update``), or the caller of an update run in place (pretraining included), which
-        then runs the update in a thread of its own. A column cut leaves every sum as it was, so the trained
+    :param split_updates: compute the large products of the VAE's and the predictor's updates (forward,
+        backward and the labels' prior) in two halves, and let a thread that waits for the update compute the
+        second halves (``sb3_gocu.curiosity.parallel``): the training thread while it waits for an update
+        overlapped with PPO's (``overlap_ppo_update``), or the caller of an update run in place (pretraining
+        included), which then runs the update in a thread of its own. Linear layers whose widths are multiples of
+        32 are cut by output columns; convolutions by halves of the minibatch (output, input gradient) and, for the
+        weight gradient, by halves of the output channels. These cuts leave every sum as it was, so the trained
         networks are the same to the bit as with whole products (tested for the default networks); halves are
         always computed the same way, so the values do not depend on who computes them or when. Only with one
         torch thread for the update, ``train_dtype="float32"`` and (for the VAE) ``vae_shards=1``; otherwise

@@ -1,20 +1,21 @@
-"""Column-split products: a curiosity update shares its matrix products with a thread that would only wait.
+"""Split products: a curiosity update shares its matrix products with a thread that would only wait.
 
 While PPO's training thread waits for a VAE or predictor update (``overlap_ppo_update``), its core is idle.
-With ``split_updates`` on, every large product of an update is computed as two halves cut along the output
-columns (a linear layer's output features, a convolution's output channels; for an input gradient, the input
-features or channels), and the second half of each is posted to a :class:`SplitWork`. The waiting thread
-(:meth:`SplitWork.help`) takes it and runs it beside the first; when nobody waits, the update's own thread
-runs both halves, one after the other.
+With ``split_updates`` on, every large product of an update is computed as two halves, and the second half of
+each is posted to a :class:`SplitWork`: a linear layer by its output columns (for the input gradient, by the
+input columns), a convolution by halves of the minibatch (output and input gradient) and of its output channels
+(weight and bias gradients). The waiting thread (:meth:`SplitWork.help`) takes the second half and runs it
+beside the first; when nobody waits, the update's own thread runs both halves, one after the other.
 
-A column cut leaves the sum behind every output element as it was (the same terms in the same order), so a
-half equals its columns of the whole product computed in one piece, to the bit, with one torch thread, on the
-CPUs we ran (tested in ``tests/test_parallel.py``). Whoever computes a half, it is computed the same way (with
-one torch thread), so a run's values never depend on when the training thread starts to help.
+Such a cut leaves the sum behind every output element as it was (the same terms in the same order), so a half
+equals its part of the whole product computed in one piece, to the bit, with one torch thread, on the CPU we ran
+(tested in ``tests/test_parallel.py`` for the default networks; narrow or odd widths, which take other kernels,
+stay whole: ``SPLIT_MULTIPLE``). Whoever computes a half, it is computed the same way (with one torch thread),
+so a run's values never depend on when the training thread starts to help.
 
-:class:`SplitLinear` and :class:`SplitConv2d` are ``nn.Linear`` and ``nn.Conv2d`` (same parameters, same
-state dict) that take the split path only in a thread inside :func:`splitting`; everywhere else they are the
-plain layers. Nothing here imports SB3.
+:class:`SplitLinear`, :class:`SplitConv2d` and :class:`SplitConvTranspose2d` are the torch layers (same
+parameters, same initialisation, same state dict) that take the split path only in a thread inside
+:func:`splitting`; everywhere else they are the plain layers. Nothing here imports SB3.
 """
 
 from __future__ import annotations

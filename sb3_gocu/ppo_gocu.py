@@ -96,6 +96,12 @@ class PPO_GoCu(PPO):
         the scores with 4 against 26.5 s with 1 (same run, README "Throughput"). The rewards are the same bit
         for bit (the worker scores the steps in order; tested); a step's ``infos["gocu_*"]`` entries are
         written ``scoring_lag`` steps later (the last ones at the rollout's end)
+    :param spill_scoring: (``async_scoring`` with the scoring process) when the process has ``scoring_lag``
+        steps unscored as a new one comes, score the new one in the training thread instead of waiting for the
+        process at the next collection (``GoalCuriosityModule.scoring_spill``). The process scores the same
+        operations on the same inputs with as many torch threads, so the rewards are the same bit for bit
+        (tested); it matters when the scoring is slower than the env steps (a trained agent meets few states
+        twice), README "Throughput"
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -116,11 +122,15 @@ class PPO_GoCu(PPO):
         async_scoring: bool = True,
         switch_interval: float | None = 5e-4,
         scoring_lag: int = 4,
+        spill_scoring: bool = True,
         **kwargs: Any,
     ) -> None:
         if isinstance(scoring_lag, bool) or not isinstance(scoring_lag, (int, np.integer)) or scoring_lag < 1:
             raise ValueError(f"scoring_lag must be an int >= 1, got {scoring_lag!r}")
         self.scoring_lag = int(scoring_lag)
+        if not isinstance(spill_scoring, (bool, np.bool_)):
+            raise ValueError(f"spill_scoring must be True or False, got {spill_scoring!r}")
+        self.spill_scoring = bool(spill_scoring)
         if switch_interval is not None and not (isinstance(switch_interval, (int, float)) and 0 < switch_interval <= 1):
             raise ValueError(f"switch_interval must be None or a number of seconds in (0, 1], got {switch_interval!r}")
         self.switch_interval = switch_interval
@@ -294,6 +304,7 @@ class PPO_GoCu(PPO):
         switch_interval = sys.getswitchinterval()
         if gocu is not None:
             gocu.defer = True
+            gocu.module.scoring_spill = self.scoring_lag if getattr(self, "spill_scoring", True) else None
             if getattr(self, "switch_interval", None) is not None:
                 sys.setswitchinterval(self.switch_interval)
         try:
@@ -360,6 +371,7 @@ class PPO_GoCu(PPO):
                 while waiting:
                     self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
                 gocu.defer = False
+                gocu.module.scoring_spill = None
                 sys.setswitchinterval(switch_interval)
 
         with th.no_grad():

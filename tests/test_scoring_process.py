@@ -133,6 +133,48 @@ def test_ppo_gocu_with_a_scoring_process_matches_the_synchronous_run():
     assert [m.max_in_flight for m in runs[1:]] == [2, 6]  # the step just submitted and up to scoring_lag before it
 
 
+def test_spilled_tickets_give_the_same_rewards(monkeypatch):
+    """spill_scoring: tickets scored in the training thread instead of the process (here every other ticket,
+    forced) give the same rewards and networks as the run that sends every ticket to the process."""
+    from sb3_gocu.curiosity.scoring import ProcessScorer
+
+    calls = [0]
+    unanswered = ProcessScorer.unanswered
+
+    def every_other(self):
+        calls[0] += 1
+        return 10**6 if calls[0] % 2 else unanswered(self)  # as if the process were far behind
+
+    runs = []
+    for spill in (False, True):
+        th.manual_seed(0)
+        env = make_vec_env(lambda: ChainEnv(), n_envs=2, seed=0)
+        curiosity = {**SMALL_CURIOSITY, "predictor_train_freq": 128, "scoring_process": True}
+        model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=2, seed=0, curiosity_kwargs=curiosity,
+                         scoring_lag=2, spill_scoring=spill)
+        if spill:
+            monkeypatch.setattr(ProcessScorer, "unanswered", every_other)
+        model.learn(640)
+        runs.append(model)
+    a, b = runs
+    assert a.curiosity.spilled_tickets == 0 and b.curiosity.spilled_tickets > 10
+    assert b.curiosity._process.bytes_sent < a.curiosity._process.bytes_sent  # fewer tickets went to the process
+    assert b.curiosity.scoring_spill is None  # only during rollouts
+    assert a.rollout_buffer.intrinsic_rewards.any()
+    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
+    for (k, v), (k2, v2) in zip(a.policy.state_dict().items(), b.policy.state_dict().items()):
+        assert k == k2 and th.equal(v, v2), k
+    sa, sb = a.curiosity.state_dict(), b.curiosity.state_dict()
+    for net in ("vae", "predictor"):
+        assert all(th.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
+
+
+@pytest.mark.parametrize("value", [1, None, "yes"])
+def test_spill_scoring_is_checked(value):
+    with pytest.raises(ValueError, match=f"spill_scoring must be True or False, got {value!r}"):
+        PPO_GoCu("MlpPolicy", make_vec_env(ChainEnv, n_envs=2, seed=0), spill_scoring=value)
+
+
 @pytest.mark.parametrize("lag", [0, -1, 1.5, True, "2"])
 def test_scoring_lag_is_checked(lag):
     with pytest.raises(ValueError, match=f"scoring_lag must be an int >= 1, got {lag!r}"):

@@ -589,6 +589,11 @@ class GoalCuriosityModule:
         self.time_inference = 0.0
         self.time_inference_background = 0.0  # scoring in the worker thread (overlaps the caller's work)
         self.time_scoring_wait = 0.0  # part of time_inference: the caller waiting for the worker's scores
+        #: scoring process only: a ticket submitted while this many or more of the process's tickets are unanswered
+        #: is scored in the caller instead (None: never). PPO_GoCu sets it to its ``scoring_lag`` during rollouts
+        #: (``spill_scoring``): the caller would otherwise wait for the oldest of them. Same values either way
+        self.scoring_spill: int | None = None
+        self.spilled_tickets = 0
         self.cpu_inference_background = 0.0  # CPU time of the worker's scoring (its wall time: time_inference_background)
         self.time_training = 0.0
         self.time_vae = 0.0
@@ -918,10 +923,11 @@ class GoalCuriosityModule:
                 self._episodes[e].append(raw[j].copy())
             if not start:
                 self.n_recorded_steps += n
-        if len(ticket.miss) and background and self.scoring_process:
+        if len(ticket.miss) and background and self.scoring_process and not self._spill(ticket):
             # the process keeps each env's goal halves: it is sent those changed since it last had them
             ticket.future = self.start_scoring_process().submit(ticket, self._eq13_args, self._goal_parts, self._goal_version)
         elif len(ticket.miss):
+            background = background and not self.scoring_process  # a spilled ticket is scored here, now
             # a copy (indexing) of the episodes' goal halves: a new episode may start before scoring
             ticket.goal_parts = self._goal_parts[th.from_numpy(env_indices[ticket.miss])]
             if background:
@@ -936,6 +942,19 @@ class GoalCuriosityModule:
         self._outstanding.append(ticket)
         self.time_inference += time.perf_counter() - t0
         return ticket
+
+    def _spill(self, ticket: "ScoringTicket") -> bool:
+        """Whether to score this ticket in the caller rather than send it to the scoring process
+        (``scoring_spill``): the process has that many tickets unanswered, and none of them holds a state this
+        ticket takes its phi from."""
+        if self.scoring_spill is None or self._process is None:
+            return False
+        if self._process.unanswered() < self.scoring_spill:
+            return False
+        if any(earlier.future is not None and not earlier.future.done() for _, earlier, _ in ticket.phi_from):
+            return False
+        self.spilled_tickets += 1
+        return True
 
     def start_scoring_process(self) -> ProcessScorer:
         """Start the scoring process now, if ``scoring_process`` and not started yet (it takes a few seconds to

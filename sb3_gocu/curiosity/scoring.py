@@ -218,6 +218,15 @@ class ProcessScorer:
         self._in_flight.append(future)
         return future
 
+    def unanswered(self) -> int:
+        """Take the answers already sent (without waiting) and return how many tickets are still unanswered."""
+        try:
+            while self._in_flight and self._recv.poll():
+                self._receive_one()
+        except (EOFError, OSError) as error:
+            raise self._ended() from error
+        return len(self._in_flight)
+
     def _ended(self) -> RuntimeError:
         return RuntimeError(
             f"the GoCu scoring process ended (exit code {self._proc.poll()}; its error output, if any, is above): "

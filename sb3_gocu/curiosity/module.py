@@ -590,8 +590,9 @@ class GoalCuriosityModule:
         self.time_inference_background = 0.0  # scoring in the worker thread (overlaps the caller's work)
         self.time_scoring_wait = 0.0  # part of time_inference: the caller waiting for the worker's scores
         #: scoring process only: a ticket submitted while this many or more of the process's tickets are unanswered
-        #: is scored in the caller instead (None: never). PPO_GoCu sets it to its ``scoring_lag`` during rollouts
-        #: (``spill_scoring``): the caller would otherwise wait for the oldest of them. Same values either way
+        #: (or while sending it would first wait for answers) is scored in the caller instead (None: never).
+        #: PPO_GoCu sets it to ``scoring_lag - 1`` (at least 1) during rollouts (``spill_scoring``): the caller
+        #: would otherwise soon wait for the process. Same values either way
         self.scoring_spill: int | None = None
         self.spilled_tickets = 0
         self.cpu_inference_background = 0.0  # CPU time of the worker's scoring (its wall time: time_inference_background)
@@ -945,11 +946,11 @@ class GoalCuriosityModule:
 
     def _spill(self, ticket: "ScoringTicket") -> bool:
         """Whether to score this ticket in the caller rather than send it to the scoring process
-        (``scoring_spill``): the process has that many tickets unanswered, and none of them holds a state this
-        ticket takes its phi from."""
+        (``scoring_spill``): the process has that many tickets unanswered, or so many answers due that sending
+        would first wait for one, and none of them holds a state this ticket takes its phi from."""
         if self.scoring_spill is None or self._process is None:
             return False
-        if self._process.unanswered() < self.scoring_spill:
+        if self._process.unanswered() < self.scoring_spill and not self._process.would_wait(ticket):
             return False
         if any(earlier.future is not None and not earlier.future.done() for _, earlier, _ in ticket.phi_from):
             return False

@@ -21,8 +21,10 @@ from __future__ import annotations
 
 import os
 import pickle
+import queue
 import subprocess
 import sys
+import threading
 import time
 import traceback
 import weakref
@@ -101,6 +103,37 @@ class _ProcessFuture:
         return self._result
 
 
+class _Writer:
+    """Writes messages into a pipe, in order, from a thread of its own: the caller never waits for the reader to
+    make room (a scoring process busy with earlier tickets; a trained agent's changed goal halves, ~100 KB a
+    step, fill the 64 KiB pipe). ``error`` holds the ``OSError`` that ended it, if any."""
+
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+        self.error: OSError | None = None
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name="gocu-score-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            payload = self._queue.get()
+            if payload is None:
+                return
+            try:
+                self.conn.send_bytes(payload)
+            except OSError as error:
+                self.error = error
+                return
+
+    def send(self, payload: bytes) -> None:
+        self._queue.put(payload)
+
+    def stop(self) -> None:
+        """Stop after the messages queued so far (it does not wait)."""
+        self._queue.put(None)
+
+
 class ProcessScorer:
     """Scores :class:`~sb3_gocu.curiosity.module.ScoringTicket` s in a child process, in submission order.
 
@@ -128,10 +161,10 @@ class ProcessScorer:
         )
         os.close(to_child_r)
         os.close(from_child_w)
-        self._send = Connection(to_child_w, readable=False)
+        self._send = _Writer(Connection(to_child_w, readable=False))
         self._recv = Connection(from_child_r, writable=False)
         self._finalizer = weakref.finalize(self, ProcessScorer._shutdown, self._send, self._recv, self._proc)
-        self._send.send_bytes(pickle.dumps(("init", to_tensor), protocol=pickle.HIGHEST_PROTOCOL))
+        self._send.send(pickle.dumps(("init", to_tensor), protocol=pickle.HIGHEST_PROTOCOL))
         self._encoder: Any = None  # the objects the child holds copies of
         self._folded: Any = None
         self._goal_versions: dict[int, int] = {}
@@ -141,8 +174,10 @@ class ProcessScorer:
         self.bytes_sent = 0
 
     @staticmethod
-    def _shutdown(send: Connection, recv: Connection, proc: subprocess.Popen) -> None:
-        for conn in (send, recv):
+    def _shutdown(send: _Writer, recv: Connection, proc: subprocess.Popen) -> None:
+        send.stop()
+        send._thread.join(timeout=10)  # the messages queued are written (the child reads them) before the pipe closes
+        for conn in (send.conn, recv):
             try:
                 conn.close()
             except OSError:
@@ -170,13 +205,13 @@ class ProcessScorer:
             version the child does not have are copied into the message
         :param goal_versions: their versions, (n_envs,)
         """
-        if self._proc.poll() is not None:
+        if self._proc.poll() is not None or self._send.error is not None:
             raise self._ended()
         # the child answers in order into a pipe that holds 64 KiB: if the answers not read yet outgrew it, the
         # child would block writing one and stop reading, and this write could block too (a caller submitting many
         # tickets before collecting). Read answers first while they would pass the bound.
-        answer_bytes = len(ticket.miss) * (ticket.phi.shape[1] + 1) * 4 + 1024
-        while self._in_flight and self._answer_bytes + answer_bytes > self.max_answer_bytes:
+        answer_bytes = self._answer_size(ticket)
+        while self.would_wait(ticket):
             self._receive_one()
         tid = self._next_tid
         self._next_tid += 1
@@ -210,13 +245,18 @@ class ProcessScorer:
             message["folded"] = self._folded = ticket.folded
         payload = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
         self.bytes_sent += len(payload)
-        try:
-            self._send.send_bytes(payload)
-        except OSError as error:
-            raise self._ended() from error
+        self._send.send(payload)  # written by the writer thread, in order
         future = _ProcessFuture(self, ticket, tid, answer_bytes)
         self._in_flight.append(future)
         return future
+
+    @staticmethod
+    def _answer_size(ticket: Any) -> int:
+        return len(ticket.miss) * (ticket.phi.shape[1] + 1) * 4 + 1024
+
+    def would_wait(self, ticket: Any) -> bool:
+        """Whether :meth:`submit` would first wait for answers (their bound, ``max_answer_bytes``)."""
+        return bool(self._in_flight) and self._answer_bytes + self._answer_size(ticket) > self.max_answer_bytes
 
     def unanswered(self) -> int:
         """Take the answers already sent (without waiting) and return how many tickets are still unanswered."""

@@ -12,7 +12,9 @@ pure functions of their arguments, so the module can run them wherever it likes:
   copy of the encoder, of the folded predictor and of each env's goal halves, sent to it only when they
   change; per step it receives the raw observations to embed and the memoised phi of the others, and sends
   back phi and the rewards. The process runs the same operations on the same inputs, with as many torch
-  threads as the caller had, so its values are the same to the bit (``tests/test_scoring_process.py``).
+  threads as the caller had, so its values are the same to the bit (``tests/test_scoring_process.py``), and
+  the caller may score any ticket itself instead (``GoalCuriosityModule.scoring_spill``). Messages to it are
+  written by a writer thread, so the caller never waits for room in the pipe.
 
 No Stable-Baselines3 import.
 """
@@ -208,8 +210,8 @@ class ProcessScorer:
         if self._proc.poll() is not None or self._send.error is not None:
             raise self._ended()
         # the child answers in order into a pipe that holds 64 KiB: if the answers not read yet outgrew it, the
-        # child would block writing one and stop reading, and this write could block too (a caller submitting many
-        # tickets before collecting). Read answers first while they would pass the bound.
+        # child would block writing one and stop reading, and the messages queued for the writer thread would pile
+        # up (a caller submitting many tickets before collecting). Read answers first while they would pass the bound.
         answer_bytes = self._answer_size(ticket)
         while self.would_wait(ticket):
             self._receive_one()

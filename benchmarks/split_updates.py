@@ -22,9 +22,9 @@ allocator thresholds fixed (as ``throughput.py``):
 from __future__ import annotations
 
 import argparse
-import ctypes
 import functools
 import hashlib
+import os
 import platform
 import sys
 import time
@@ -37,17 +37,10 @@ from gymnasium import spaces
 from sb3_gocu.curiosity.module import GoalCuriosityModule
 from sb3_gocu.curiosity.parallel import SplitWork
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from malloc_thresholds import fix_malloc_thresholds  # noqa: E402
+
 IMAGE_SPACE = spaces.Box(0, 255, (32, 32, 3), np.uint8)
-
-
-def fix_malloc_thresholds() -> bool:
-    """glibc: keep freed heap memory (trim threshold 1 GiB) and serve blocks up to 32 MiB from the heap, so that
-    the large tensors of a fit are not mapped and faulted in again at every step (as throughput.py)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    return bool(libc.mallopt(-1, 1 << 30)) and bool(libc.mallopt(-3, 32 << 20))
 
 
 def weights(*modules: th.nn.Module) -> str:

@@ -11,7 +11,7 @@ from torch import nn
 
 from sb3_gocu.curiosity.module import torch_threads
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE, vae_loss
-from sb3_gocu.curiosity.parallel import SplitConv2d, SplitLinear, SplitWork, splitting
+from sb3_gocu.curiosity.parallel import SplitConv2d, SplitConvTranspose2d, SplitLinear, SplitWork, splitting
 
 
 def _params(net: nn.Module) -> th.Tensor:
@@ -193,3 +193,33 @@ def test_split_layers_are_the_plain_layers_outside_splitting() -> None:
         assert conv(x).grad_fn.name() == "_SplitConvFnBackward"
         for narrow in (SplitLinear(32, 20), SplitLinear(10, 64)):  # widths not multiples of SPLIT_MULTIPLE: whole
             assert narrow(th.randn(4, narrow.in_features)).grad_fn.name() != "_SplitLinearFnBackward"
+
+
+@pytest.mark.parametrize("make", [
+    lambda: SplitConv2d(3, 32, 3, stride=2, padding=1),  # output channels split for the weight gradient
+    lambda: SplitConv2d(8, 16, 3, padding=1),  # 16 output channels: weight gradient whole
+    lambda: SplitConvTranspose2d(32, 3, 4, stride=2, padding=1),  # weight gradient whole
+], ids=["conv_32", "conv_16", "conv_transpose"])
+@pytest.mark.parametrize("batch", [6, 7])
+def test_split_convolutions_match_the_plain_layer(make, batch) -> None:
+    """Output, input, weight and bias gradients of a split convolution (minibatch halves of 3 and 3, or 3 and 4
+    samples) equal the plain layer's, helped or not."""
+    th.manual_seed(0)
+    conv = make()
+    x = th.randn(batch, conv.in_channels, 9, 9, generator=th.Generator().manual_seed(1))
+    grad = None
+
+    def run() -> tuple[th.Tensor, ...]:
+        nonlocal grad
+        xx = x.clone().requires_grad_(True)
+        conv.zero_grad(set_to_none=True)
+        y = conv(xx)
+        grad = th.randn(y.shape, generator=th.Generator().manual_seed(2)) if grad is None else grad
+        y.backward(grad)
+        return y.detach(), xx.grad, conv.weight.grad.clone(), conv.bias.grad.clone()
+
+    with torch_threads(1):
+        plain = run()
+    for help in (False, True):
+        split = _in_thread(run, SplitWork(), help=help)
+        assert all(th.equal(a, b) for a, b in zip(plain, split)), help

@@ -226,7 +226,7 @@ class _SplitConvFn(th.autograd.Function):
         x, weight = ctx.saved_tensors
         conv, bias = ctx.conv, ctx.has_bias
         need_x = ctx.needs_input_grad[0]
-        m, c = x.shape[0] // 2, weight.shape[0]
+        m, c = x.shape[0] // 2, weight.shape[0]  # c: a Conv2d's output channels (a ConvTranspose2d's weight is (in, out, ...))
         split_w = not isinstance(conv, nn.ConvTranspose2d) and c % SPLIT_MULTIPLE == 0
 
         def half(rows: slice, out_ch: slice | None) -> tuple[th.Tensor | None, th.Tensor | None, th.Tensor | None]:
@@ -236,7 +236,7 @@ class _SplitConvFn(th.autograd.Function):
             _, gw, gb = _conv_backward(grad[:, out_ch].contiguous(), x, weight[out_ch], conv, [False, True, bias])
             return gx, gw, gb
 
-        first, second = (slice(0, c // 2), slice(c // 2, c)) if split_w else (slice(0, c), None)
+        first, second = (slice(0, c // 2), slice(c // 2, c)) if split_w else (slice(None), None)  # None: whole in the first
         (gx_a, gw_a, gb_a), (gx_b, gw_b, gb_b) = ctx.work.run2(
             lambda: half(slice(0, m), first), lambda: half(slice(m, None), second)
         )

@@ -1080,19 +1080,21 @@ class GoalCuriosityModule:
             rest = [f.result() for f in futures]  # every part ends before the weights move on
         return [first, *rest]
 
+    def _splits(self, threads: int, vae: bool = False) -> bool:
+        """Whether an update run with ``threads`` torch threads splits its products (``split_updates``): not with
+        more than one thread, bfloat16 training, or a sharded VAE step."""
+        return self.split_updates and threads == 1 and self.train_dtype == "float32" and not (vae and self.vae_shards > 1)
+
     def _split_work(self, vae: bool = False) -> SplitWork | None:
-        """Where an update's split products post their second halves (``split_updates``; call it in the fit's
-        thread, with the fit's torch threads set), or None: the products stay whole (``split_updates`` off, more
-        than one torch thread, bfloat16 training, or a sharded VAE step)."""
-        if not self.split_updates or th.get_num_threads() != 1 or self.train_dtype != "float32" or (vae and self.vae_shards > 1):
-            return None
-        return self._split
+        """Where an update's split products post their second halves (call it in the fit's thread, with the fit's
+        torch threads set), or None: the products stay whole (:meth:`_splits`)."""
+        return self._split if self._splits(th.get_num_threads(), vae) else None
 
     def _helped(self, fit: Callable[[], Any]) -> Any:
         """``fit()`` for an update run in place (pretraining, ``train_vae``, ``train_predictor``, no
         ``overlap_ppo_update``): with ``split_updates`` it runs in a thread of its own while this thread
         computes halves of its products (the values are the same either way)."""
-        if not self.split_updates or self.train_dtype != "float32" or self._update_thread_count() != 1:
+        if not self._splits(self._update_thread_count()):
             return fit()
         out: dict[str, Any] = {}
         finished = threading.Event()

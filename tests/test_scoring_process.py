@@ -100,6 +100,29 @@ def test_phi_of_a_ticket_in_flight_is_taken_from_the_process():
     assert np.array_equal(second.rewards, module.score_states(np.concatenate([other, frame])))
 
 
+def chain_run(scoring_process: bool, before_learning=None, **kwargs) -> PPO_GoCu:
+    """PPO_GoCu on 2 ChainEnvs, 640 steps (a predictor update every 128), seed 0; ``before_learning(model)`` runs
+    just before ``learn``."""
+    th.manual_seed(0)
+    env = make_vec_env(lambda: ChainEnv(), n_envs=2, seed=0)
+    curiosity = {**SMALL_CURIOSITY, "predictor_train_freq": 128, "scoring_process": scoring_process}
+    model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=2, seed=0, curiosity_kwargs=curiosity, **kwargs)
+    if before_learning is not None:
+        before_learning(model)
+    model.learn(640)
+    return model
+
+
+def assert_same_training(a: PPO_GoCu, b: PPO_GoCu) -> None:
+    """The same intrinsic rewards in the last rollout, policy weights and VAE and predictor weights, to the bit."""
+    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
+    for (k, v), (k2, v2) in zip(a.policy.state_dict().items(), b.policy.state_dict().items()):
+        assert k == k2 and th.equal(v, v2), k
+    sa, sb = a.curiosity.state_dict(), b.curiosity.state_dict()
+    for net in ("vae", "predictor"):
+        assert all(th.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
+
+
 def test_ppo_gocu_with_a_scoring_process_matches_the_synchronous_run():
     """With 1 and with 5 steps in flight (``scoring_lag``), collected in order across the rollout's end."""
     runs = []
@@ -109,27 +132,20 @@ def test_ppo_gocu_with_a_scoring_process_matches_the_synchronous_run():
         dict(async_scoring=True, scoring_process=True, scoring_lag=5),
     )
     for kwargs in settings:
-        process = kwargs.pop("scoring_process", False)
-        th.manual_seed(0)
-        env = make_vec_env(lambda: ChainEnv(), n_envs=2, seed=0)
-        curiosity = {**SMALL_CURIOSITY, "predictor_train_freq": 128, "scoring_process": process}
-        model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=2, seed=0, curiosity_kwargs=curiosity, **kwargs)
         in_flight = []  # tickets outstanding at each collection
-        collect = model.curiosity.collect
-        model.curiosity.collect = lambda ticket, _c=collect, _m=model.curiosity: in_flight.append(len(_m._outstanding)) or _c(ticket)
-        model.learn(640)
+
+        def before_learning(model, in_flight=in_flight):
+            collect = model.curiosity.collect
+            model.curiosity.collect = lambda ticket: in_flight.append(len(model.curiosity._outstanding)) or collect(ticket)
+
+        model = chain_run(kwargs.pop("scoring_process", False), before_learning, **kwargs)
         model.max_in_flight = max(in_flight, default=0)
         runs.append(model)
     a = runs[0]
     assert a.rollout_buffer.intrinsic_rewards.any()
     for b in runs[1:]:
         assert b.curiosity._process is not None and b.curiosity._scorer is None
-        assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
-        for (k, v), (k2, v2) in zip(a.policy.state_dict().items(), b.policy.state_dict().items()):
-            assert k == k2 and th.equal(v, v2), k
-        sa, sb = a.curiosity.state_dict(), b.curiosity.state_dict()
-        for net in ("vae", "predictor"):
-            assert all(th.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
+        assert_same_training(a, b)
     assert [m.max_in_flight for m in runs[1:]] == [2, 6]  # the step just submitted and up to scoring_lag before it
 
 
@@ -145,28 +161,13 @@ def test_spilled_tickets_give_the_same_rewards(monkeypatch):
         calls[0] += 1
         return 10**6 if calls[0] % 2 else unanswered(self)  # as if the process were far behind
 
-    runs = []
-    for spill in (False, True):
-        th.manual_seed(0)
-        env = make_vec_env(lambda: ChainEnv(), n_envs=2, seed=0)
-        curiosity = {**SMALL_CURIOSITY, "predictor_train_freq": 128, "scoring_process": True}
-        model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=2, seed=0, curiosity_kwargs=curiosity,
-                         scoring_lag=2, spill_scoring=spill)
-        if spill:
-            monkeypatch.setattr(ProcessScorer, "unanswered", every_other)
-        model.learn(640)
-        runs.append(model)
-    a, b = runs
+    a = chain_run(True, scoring_lag=2, spill_scoring=False)
+    b = chain_run(True, lambda _: monkeypatch.setattr(ProcessScorer, "unanswered", every_other), scoring_lag=2, spill_scoring=True)
     assert a.curiosity.spilled_tickets == 0 and b.curiosity.spilled_tickets > 10
     assert b.curiosity._process.bytes_sent < a.curiosity._process.bytes_sent  # fewer tickets went to the process
     assert b.curiosity.scoring_spill is None  # only during rollouts
     assert a.rollout_buffer.intrinsic_rewards.any()
-    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
-    for (k, v), (k2, v2) in zip(a.policy.state_dict().items(), b.policy.state_dict().items()):
-        assert k == k2 and th.equal(v, v2), k
-    sa, sb = a.curiosity.state_dict(), b.curiosity.state_dict()
-    for net in ("vae", "predictor"):
-        assert all(th.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
+    assert_same_training(a, b)
 
 
 @pytest.mark.parametrize("value", [1, None, "yes"])

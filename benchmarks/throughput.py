@@ -15,6 +15,7 @@ bookkeeping, PPO update, curiosity inference, VAE training (pretraining included
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -142,14 +143,28 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         out["curiosity_updates_s"] = out.get("curiosity_updates_s", 0.0) + waits_in_rollouts[0]
         out["pretrain_s"] = pretrain_timer.totals.get("pretrain", 0.0) - pretrain_before
         out["waiting_for_worker_s"] = mod.time_scoring_wait
+        out["steps_queued_behind_updates"] = float(mod.queued_steps)  # queue_during_update
+        out["tickets_spilled"] = float(mod.spilled_tickets)  # spill_scoring
     out["policy_and_bookkeeping_s"] = (
         out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0) - out.get("curiosity_updates_s", 0.0)
     )
     out["other_s"] = total - out["rollout_s"] - out["ppo_update_s"] - out.get("pretrain_s", 0.0) - out.get("end_of_learn_wait_s", 0.0)
+    out["weights_sha256"] = weights_hash(model)
     return out
 
 
-def main() -> None:
+def weights_hash(model: Any) -> str:
+    """First 16 hex digits of the SHA-256 of the policy's weights (and the VAE's and the predictor's): arms that
+    must train the same networks (options that change only the wall time) show the same digits."""
+    h = hashlib.sha256()
+    nets = [model.policy] + ([model.curiosity.vae, model.curiosity.predictor] if getattr(model, "curiosity", None) is not None else [])
+    for net in nets:
+        for t in net.state_dict().values():
+            h.update(t.detach().cpu().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="GoCu/DoorKey-8x8-v0")
     parser.add_argument("--timesteps", type=int, default=100_000)
@@ -181,7 +196,7 @@ def main() -> None:
     parser.add_argument("--also-arm", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with both kinds of setting, e.g. '{\"curiosity\": {\"scoring_dtype\": \"bfloat16\"}, "
                         "\"model\": {\"scoring_lag\": 4}}' (another run each time the option is given)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     arms = [json.loads(a) for a in args.also_arm or []]
     for arm in arms:
         if not isinstance(arm, dict) or not set(arm) <= {"curiosity", "model"}:
@@ -192,7 +207,8 @@ def main() -> None:
     if args.malloc == "fixed":
         malloc = "glibc mallopt trim 1 GiB, mmap 32 MiB" if fix_malloc_thresholds() else "could not fix the glibc thresholds: default"
 
-    print(f"command: {' '.join([os.path.basename(sys.executable)] + sys.argv)}")
+    command = [os.path.basename(sys.executable)] + (sys.argv if argv is None else [__file__, *argv])
+    print(f"command: {' '.join(command)}")
     print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {th.__version__}, threads {args.threads}, seed {args.seed}; "
           f"order {args.order}; malloc: {malloc}")
     raw = raw_env_rate(args.env, 16, min(args.timesteps, 32_000), args.seed)
@@ -244,6 +260,10 @@ def main() -> None:
                 "end_of_learn_wait_s", "other_s", "total_s"):
         extra = "".join(f"  {results[k].get(key, 0.0):20.1f}" for k in extras)
         print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}{extra}")
+    print(f"  {'weights_sha256':28s} {ppo['weights_sha256']:>7s}  {gocu['weights_sha256']:>9s}" + "".join(f"  {results[k]['weights_sha256']:>20s}" for k in extras))
+    for key in ("steps_queued_behind_updates", "tickets_spilled"):
+        extra = "".join(f"  {results[k].get(key, 0.0):20.0f}" for k in extras)
+        print(f"  {key:28s} {'':7s}  {gocu.get(key, 0.0):9.0f}{extra}")
     print("  (curiosity_inference_s: the rollout's own time in the module, waiting_for_worker_s included: the part it waited")
     print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker thread, overlapping the next")
     print("   env step (async_scoring), not on the critical path unless waited for; scoring_in_worker_cpu_s: the worker's")
@@ -254,11 +274,15 @@ def main() -> None:
     print("   PPO's update and the next rollout waits for the rest: only the waits are on the critical path)")
     print("  (curiosity_updates_s: time the rollouts waited for VAE/predictor updates; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")
+    print("  (steps_queued_behind_updates: rollout steps that waited in the module's queue while an update ran beside the env")
+    print("   stepping (queue_during_update); tickets_spilled: steps scored in the training thread instead of the scoring process")
+    print("   (spill_scoring))")
     print(f"  (pretrain_s is the whole random-policy pretraining phase (measured, not a remainder); "
           f"reward cache hit rate {gocu['cache_hit_rate']:.2f})")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"command": sys.argv, "order": args.order, "malloc": malloc, "raw_env_steps_per_s": raw, **results}, f, indent=2)
+            json.dump({"command": command[1:], "order": args.order, "malloc": malloc, "raw_env_steps_per_s": raw, **results}, f, indent=2)
+    return results
 
 
 if __name__ == "__main__":

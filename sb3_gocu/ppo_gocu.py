@@ -80,8 +80,9 @@ class PPO_GoCu(PPO):
     :param async_scoring: score the curiosity of each rollout step in the module's worker while the envs take the
         next step: a process by default, a thread with ``curiosity_kwargs={"scoring_process": False}`` (see
         :class:`~sb3_gocu.GoalCuriosityModule`). The rewards are the same bit for bit; a step's ``infos["gocu_*"]``
-        entries are written ``scoring_lag`` steps later (at the rollout end for the last steps), so a callback
-        reading them in ``on_step`` sees those of an earlier step. Used when the training env has one
+        entries are written ``scoring_lag`` steps later (at the rollout end for the last steps; later still for
+        steps queued behind a curiosity update, ``queue_during_update``), so a callback reading them in ``on_step``
+        sees those of an earlier step. Used when the training env has one
         :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``)
     :param switch_interval: the interpreter's GIL switch interval in seconds (``sys.setswitchinterval``) while a
         rollout scores in the worker thread, and while PPO's update runs beside a curiosity update
@@ -330,7 +331,9 @@ class PPO_GoCu(PPO):
                 if gocu is not None:
                     waiting.append((gocu.deferred, None))
                     gocu.deferred = None
-                    while len(waiting) > self.scoring_lag:
+                    # a step queued behind a curiosity update (queue_during_update) is taken when the update is
+                    # done, or at the rollout's end: the envs step on meanwhile
+                    while len(waiting) > self.scoring_lag and not gocu.queued(waiting[0][0]):
                         self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
                     intrinsic = np.zeros(env.num_envs, dtype=np.float32)
                 else:

@@ -128,6 +128,12 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i]) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
 
+    @staticmethod
+    def queued(deferred: tuple[Any, list[dict], np.ndarray]) -> bool:
+        """Whether a step taken with ``defer=True`` still waits in the module's queue behind a running update
+        (``queue_during_update``): taking it now would wait for the update."""
+        return deferred[0].queued is not None
+
     def take_deferred(self, deferred: tuple[Any, list[dict], np.ndarray]) -> np.ndarray:
         """Rewards of a step taken with ``defer=True`` (``mode="separate"``): collects its scores, writes the
         ``gocu_*`` entries into that step's ``infos`` (the same dicts) and returns the normalised r_gc."""

@@ -336,3 +336,31 @@ def test_split_updates_benchmark_finds_the_same_weights():
     assert (off["split_updates"], on["split_updates"]) == (False, True)
     assert off["weights"] == on["weights"]
     assert off["halves_posted"] == 0 and on["halves_posted"] > 0  # the pretraining's fit was helped
+
+
+def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_time_options(tmp_path):
+    """benchmarks/throughput.py, tiny (DoorKey-5x5, 4,096 steps, tiny curiosity, updates overlapping PPO's): an arm
+    that changes only the wall time (``queue_during_update=False``) trains the same weights as the defaults, an arm
+    that changes the training (another ``predictor_lr``) does not, and each arm's time is split into its parts."""
+    bench = load_script("throughput", "benchmarks/throughput.py")
+    threads = th.get_num_threads()
+    curiosity = {**TINY_IMAGE_CURIOSITY, "overlap_ppo_update": True}
+    try:
+        results = bench.main([
+            "--env", "GoCu/DoorKey-5x5-v0", "--timesteps", "4096", "--threads", "1", "--malloc", "default",
+            "--curiosity-kwargs", json.dumps(curiosity), "--json", str(tmp_path / "t.json"),
+            "--also-arm", json.dumps({"curiosity": {"queue_during_update": False}}),
+            "--also-arm", json.dumps({"curiosity": {"predictor_lr": 1e-2}}),
+        ])
+    finally:
+        th.set_num_threads(threads)
+    ppo, gocu, queue_off, other_lr = (results[k] for k in ("ppo", "ppo_gocu", "ppo_gocu_arm_0", "ppo_gocu_arm_1"))
+    assert gocu["weights_sha256"] == queue_off["weights_sha256"]
+    assert len({ppo["weights_sha256"], gocu["weights_sha256"], other_lr["weights_sha256"]}) == 3
+    assert queue_off["steps_queued_behind_updates"] == 0
+    for r in (ppo, gocu, queue_off, other_lr):
+        assert r["steps"] == 4096 and r["steps_per_s"] > 0 and r["env_s"] > 0 and r["ppo_update_s"] > 0
+    for r in (gocu, queue_off, other_lr):
+        assert r["pretrain_s"] > 0 and r["scoring_in_worker_s"] > 0 and r["predictor_training_s"] > 0
+    saved = json.loads((tmp_path / "t.json").read_text())
+    assert saved["ppo_gocu"]["weights_sha256"] == gocu["weights_sha256"] and saved["command"][1:3] == ["--env", "GoCu/DoorKey-5x5-v0"]

@@ -260,3 +260,112 @@ def test_scoring_dtype_is_checked_and_kept_by_a_save(tmp_path):
     assert loaded.curiosity.scoring_dtype == "bfloat16"
     for (w1, b1), (w2, b2) in zip(model.curiosity._folded.layers, loaded.curiosity._folded.layers):
         assert w2.dtype == th.bfloat16 and th.equal(w1, w2) and th.equal(b1, b2)
+
+
+def gated_fits(monkeypatch) -> threading.Event:
+    """Predictor fits that start only when the returned event is set (and clear it): a test decides how long an
+    update overlapped with PPO's runs."""
+    gate = threading.Event()
+    fit = GoalCuriosityModule._fit_predictor
+
+    def gated(self, *args, **kwargs):
+        assert gate.wait(60), "the test never opened the gate"
+        gate.clear()
+        return fit(self, *args, **kwargs)
+
+    monkeypatch.setattr(GoalCuriosityModule, "_fit_predictor", gated)
+    return gate
+
+
+def test_steps_queued_behind_an_update_give_the_same_training(monkeypatch):
+    """queue_during_update: while a predictor update overlapped with PPO's still runs, the next rollout's steps wait
+    in the module's queue and the envs step on; when it ends, the queue is submitted mid-rollout. The same rewards,
+    policy and networks as the run whose first step waits for the update. Each fit here runs only after 5 steps
+    have been submitted beside it, or when it is waited for."""
+    gate = gated_fits(monkeypatch)
+
+    def setup(queue: bool, replays: list):
+        def before_learning(model):
+            module = model.curiosity
+            module.queue_during_update, module.overlap_ppo_update = queue, True
+            module.vae_train_freq = 256  # a VAE update too (in the same job as a predictor update)
+            submit, submit_queue, finish, beside, opened = module.submit, module._submit_queue, module.finish_background_update, [0], [None]
+
+            def open_gate():  # once per update
+                if module._job is not None and opened[0] is not module._job:
+                    opened[0] = module._job
+                    gate.set()
+
+            def counting_submit(*args, **kwargs):
+                beside[0] = beside[0] + 1 if module.update_running else 0
+                if beside[0] == 5:
+                    open_gate()
+                return submit(*args, **kwargs)
+
+            def opening_finish():  # whoever waits for the update opens the gate
+                open_gate()
+                return finish()
+
+            def recorded_submit_queue():
+                replays.append(len(module._queue))
+                submit_queue()
+
+            module.submit, module._submit_queue, module.finish_background_update = counting_submit, recorded_submit_queue, opening_finish
+
+        return before_learning
+
+    replays_a, replays_b = [], []
+    a = chain_run(True, setup(False, replays_a))
+    b = chain_run(True, setup(True, replays_b))
+    assert a.curiosity.queued_steps == 0 and not any(replays_a)
+    queued = [n for n in replays_b if n]
+    assert len(queued) == 4, "each of the 4 updates beside PPO's queued steps"  # rollouts of 64 steps, an update after each
+    assert all(5 <= n < 64 for n in queued), queued  # submitted while the rollout went on
+    assert b.curiosity.queued_steps == sum(queued)
+    assert_same_training(a, b)
+
+
+def test_a_module_use_takes_the_queued_steps_first(monkeypatch):
+    """Queued steps are submitted before anything else the module does: here a reset of env 0
+    (``begin_episodes``) while steps wait behind an update, against the module that waits for the update."""
+    gate = gated_fits(monkeypatch)
+    frames = frames_with_repeats(40, 2, seed=7)
+    dones = np.random.default_rng(8).random((40, 2)) < 0.15
+    out = []
+    for queue in (False, True):
+        module = GoalCuriosityModule(SPACE, **{**SMALL_CURIOSITY, "predictor_train_freq": 40, "overlap_ppo_update": True}, revisit_decay="none",
+                                     scoring_process=True, queue_during_update=queue, seed=3)
+        module.recording = True
+        gate.set()
+        module.pretrain()
+        rewards = [module.step(f, d) for f, d in zip(frames[:10], dones[:10])]
+        module.add_finished_episode_goals()  # goals for the episodes begun from here
+        rewards += [module.step(f, d) for f, d in zip(frames[10:30], dones[10:30])]
+        module.add_finished_episode_goals()
+        module.maybe_train()  # a predictor update, overlapped: its fit waits for the gate
+        assert module.update_running
+        if not queue:
+            gate.set()  # the first submission waits for the update
+        tickets = [module.submit(f, np.array([False, t == 32])) for t, f in enumerate(frames[30:35], 30)]
+        assert [t.queued is not None for t in tickets] == [queue] * 5
+        gate.set()
+        module.begin_episodes(np.array([0]))
+        assert not module._queue and all(t.queued is None for t in tickets)
+        tickets += [module.submit(f, d) for f, d in zip(frames[35:], dones[35:])]
+        rewards += [module.collect(t) for t in tickets]
+        out.append((rewards, module.state_dict()))
+    (ra, sa), (rb, sb) = out
+    assert all(np.array_equal(x[0], y[0]) and np.array_equal(x[1], y[1]) for x, y in zip(ra, rb))
+    assert len(np.unique(np.concatenate([r for r, _ in rb]))) > 5
+    for net in ("vae", "predictor"):
+        assert all(th.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
+    assert sa["counters"] == sb["counters"]
+    # env 1's episode ended in the queue, env 0's by the reset after it: 2 episodes begun, in that order
+    assert sa["envs"]["next_episode_id"] == sb["envs"]["next_episode_id"]
+    assert th.equal(sa["envs"]["goal_parts"], sb["envs"]["goal_parts"])
+
+
+@pytest.mark.parametrize("value", [1, None, "yes"])
+def test_queue_during_update_is_checked(value):
+    with pytest.raises(ValueError, match=f"queue_during_update must be True or False, got {value!r}"):
+        GoalCuriosityModule(SPACE, queue_during_update=value)

@@ -164,6 +164,9 @@ class ScoringTicket:
         self.compute_time = 0.0
         self.compute_cpu_time = 0.0  # CPU time of the computing thread (the rest of compute_time: waiting for the GIL or a core)
         self.result: tuple[np.ndarray, np.ndarray] | None = None
+        #: (raw rows, dones, env indices, first observations of the new episodes or None) of a step queued behind a
+        #: running update (``queue_during_update``), until it is submitted
+        self.queued: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None] | None = None
 
 
 class GoalCuriosityModule:
@@ -341,6 +344,14 @@ class GoalCuriosityModule:
         always computed the same way, so the values do not depend on who computes them or when. Only with one
         torch thread for the update, ``train_dtype="float32"`` and (for the VAE) ``vae_shards=1``; otherwise
         the products stay whole. Measured on DoorKey-8x8 in README, Results, "Throughput"
+    :param queue_during_update: (with ``overlap_ppo_update``) a step submitted for background scoring
+        (:meth:`submit`, as PPO_GoCu's rollouts do) while an update overlapped with PPO's still runs is queued, and
+        :meth:`submit` returns at once, so the envs step on beside the update instead of waiting for it. When the
+        update is done (checked at each submission), it is taken into use and the queued steps are submitted in
+        their order, before anything else the module does; collecting a queued step waits for the update. Every
+        step meets the same networks, goals and memos as without the queue, so the rewards and the module's
+        state are the same bit for bit (tested); only the wall time changes. False: the first submission waits
+        for the update
     :param device: torch device of the networks
     :param seed: seed of the module's random generators
     """
@@ -398,6 +409,7 @@ class GoalCuriosityModule:
         scoring_dtype: str = "float32",
         train_dtype: str = "float32",
         split_updates: bool = True,
+        queue_during_update: bool = True,
         device: th.device | str = "cpu",
         seed: int | None = None,
     ) -> None:
@@ -503,6 +515,8 @@ class GoalCuriosityModule:
         self.train_dtype = train_dtype
         _check(isinstance(split_updates, (bool, np.bool_)), f"split_updates must be True or False, got {split_updates!r}")
         self.split_updates = bool(split_updates)
+        _check(isinstance(queue_during_update, (bool, np.bool_)), f"queue_during_update must be True or False, got {queue_during_update!r}")
+        self.queue_during_update = bool(queue_during_update)
         self._split = SplitWork()
         self._shard_pool: ThreadPoolExecutor | None = None
         self._shard_pool_workers = 0
@@ -562,6 +576,9 @@ class GoalCuriosityModule:
         self._job_until_next_use = False  # the running update is taken into use before the module is next used
         self._job_finished = threading.Event()  # set when the running update's fits end (split_updates' helper stops)
         self._unreported: dict[str, float] = {}  # statistics of updates taken into use outside maybe_train
+        self._queue: deque[ScoringTicket] = deque()  # steps submitted while an overlapped update runs (queue_during_update)
+        self._holding_queue = False  # while an update is taken into use, or the queue is being submitted
+        self.queued_steps = 0  # steps that waited in the queue (queue_during_update)
         self.embedding_cache_size = 100_000
         self._next_episode_id = 0
         self.finished_episodes: deque = deque(maxlen=1024)
@@ -681,6 +698,7 @@ class GoalCuriosityModule:
             ``record_start_states``, ignored otherwise)
         :param background: score them in the worker, as :meth:`submit`
         """
+        self._await_overlapped_update()  # steps queued behind an update come first
         env_indices = np.asarray(env_indices, dtype=np.int64)
         if len(env_indices):
             self.ensure_envs(int(env_indices.max()) + 1)
@@ -711,6 +729,7 @@ class GoalCuriosityModule:
         """Switch recording on (a training callback's start), and record the first observations of the episodes
         begun while it was off that have taken no step since (``record_start_states``): SB3's ``learn`` resets the
         env before its callbacks start, so without this each ``learn`` after the first would miss one s_0 per env."""
+        self._await_overlapped_update()
         self.recording = True
         if self._unrecorded_starts:
             env_indices = np.array(sorted(self._unrecorded_starts), dtype=np.int64)
@@ -761,11 +780,13 @@ class GoalCuriosityModule:
 
     _key = staticmethod(observation_key)  # the memo key of a raw observation
 
-    def _lookup(self, raw: np.ndarray, env_indices: np.ndarray, keys: list[bytes]) -> "ScoringTicket":
+    def _lookup(self, raw: np.ndarray, env_indices: np.ndarray, keys: list[bytes], ticket: "ScoringTicket | None" = None) -> "ScoringTicket":
         """Memo lookups of one observation per env (main thread): rewards known from the episode's memo, rows
-        equal to a row still being scored (``pending``), and the rows to score (``miss``), with their phi."""
+        equal to a row still being scored (``pending``), and the rows to score (``miss``), with their phi. Into
+        ``ticket`` (a queued one, as new) if given."""
         n = len(raw)
-        ticket = ScoringTicket(n, self.goal_buffer.embeddings.shape[1])
+        if ticket is None:
+            ticket = ScoringTicket(n, self.goal_buffer.embeddings.shape[1])
         ticket.env_indices, ticket.keys = env_indices, keys
         ticket.episode_ids = self._episode_ids[env_indices].copy()
         miss = []
@@ -895,14 +916,42 @@ class GoalCuriosityModule:
         raw = self.adapter.extract(observations)
         env_indices = np.arange(len(raw)) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
         dones = np.asarray(dones, dtype=bool)
-        ticket = self._submit(raw, dones, env_indices, background)
         record = next_observations is not None and self.record_start_states and dones.any()
-        self._start_episodes(env_indices[dones], self.adapter.extract(next_observations)[dones] if record else None, background)
+        starts = self.adapter.extract(next_observations)[dones] if record else None
+        if background and self._queueing():
+            ticket = ScoringTicket(len(raw), self.goal_buffer.embeddings.shape[1])
+            # copies: the env may reuse its buffers before the step is submitted
+            ticket.queued = (np.array(raw, copy=True), dones.copy(), env_indices.copy(), None if starts is None else np.array(starts, copy=True))
+            self._queue.append(ticket)
+            self.queued_steps += 1
+            return ticket
+        return self._submit_step(raw, dones, env_indices, starts, background)
+
+    def _submit_step(
+        self, raw: np.ndarray, dones: np.ndarray, env_indices: np.ndarray, starts: np.ndarray | None, background: bool, ticket: "ScoringTicket | None" = None
+    ) -> "ScoringTicket":
+        """:meth:`submit` of extracted rows (``starts``: the first observations of the episodes that begin, or None);
+        ``ticket``: a queued ticket to fill."""
+        ticket = self._submit(raw, dones, env_indices, background, ticket=ticket)
+        self._start_episodes(env_indices[dones], starts, background)
         return ticket
 
-    def _submit(self, raw: np.ndarray, dones: np.ndarray, env_indices: np.ndarray, background: bool, start: bool = False) -> "ScoringTicket":
+    def _queueing(self) -> bool:
+        """Whether a background submission goes to the queue (``queue_during_update``): an update overlapped with
+        PPO's still runs. Once it is done, it is taken into use and the queue submitted, and this is False."""
+        if not self.queue_during_update:
+            return False
+        if self._job is not None and self._job_until_next_use and not self._job_finished.is_set():
+            return True
+        self._await_overlapped_update()
+        return False
+
+    def _submit(
+        self, raw: np.ndarray, dones: np.ndarray, env_indices: np.ndarray, background: bool, start: bool = False, ticket: "ScoringTicket | None" = None
+    ) -> "ScoringTicket":
         """:meth:`submit` of raw rows, without starting the episodes that end; ``start``: the rows are the first
-        observations of new episodes (``record_start_states``): recorded and scored, but no env step."""
+        observations of new episodes (``record_start_states``): recorded and scored, but no env step; ``ticket``: a
+        queued ticket to fill."""
         self._await_overlapped_update()
         t0 = time.perf_counter()
         n = len(raw)
@@ -911,7 +960,7 @@ class GoalCuriosityModule:
             for e in env_indices:
                 self._unrecorded_starts.pop(int(e), None)
         keys = [self._key(x) for x in raw]
-        ticket = self._lookup(raw, env_indices, keys)
+        ticket = self._lookup(raw, env_indices, keys, ticket)
         ticket.recording = self.recording
         ticket.start = start
         if self.recording and self.trajectories.keeps_observations:
@@ -972,6 +1021,8 @@ class GoalCuriosityModule:
         same arrays."""
         if ticket.result is not None:
             return ticket.result
+        if ticket.queued is not None:
+            self._await_overlapped_update()  # waits for the update, then submits the queue
         while self._outstanding and self._outstanding[0] is not ticket:
             self.collect(self._outstanding[0])
         if not self._outstanding:
@@ -1012,7 +1063,10 @@ class GoalCuriosityModule:
         return ticket.result
 
     def collect_all(self) -> None:
-        """Take every outstanding ticket (before the networks, the goals or the state change hands)."""
+        """Take every outstanding ticket (before the networks, the goals or the state change hands), the queued ones
+        included (which waits for the update they are queued behind)."""
+        if self._queue and not self._holding_queue:
+            self._await_overlapped_update()
         while self._outstanding:
             self.collect(self._outstanding[0])
 
@@ -1486,6 +1540,21 @@ class GoalCuriosityModule:
         ``overlap_ppo_update`` (waiting for it if it still runs)."""
         if self._job is not None and self._job_until_next_use:
             self._unreported.update(self.finish_background_update())
+        elif self._queue and not self._holding_queue:
+            self._submit_queue()
+
+    def _submit_queue(self) -> None:
+        """Submit the steps queued behind an update (``queue_during_update``), in order, now that it is in use."""
+        self._holding_queue = True
+        try:
+            while self._queue:
+                ticket = self._queue[0]
+                raw, dones, env_indices, starts = ticket.queued  # type: ignore[misc]
+                self._queue.popleft()
+                ticket.queued = None
+                self._submit_step(raw, dones, env_indices, starts, True, ticket)
+        finally:
+            self._holding_queue = False
 
     def finish_background_update(self) -> dict[str, float]:
         """Wait for a background update, if one runs, and take its networks into use.
@@ -1506,8 +1575,14 @@ class GoalCuriosityModule:
         if result["error"] is not None:
             raise RuntimeError("a background curiosity update failed") from result["error"]
         out: dict[str, float] = {}
-        for name, fit in result["fits"]:
-            out.update(self._finish_predictor(fit) if name == "predictor" else self._finish_vae(fit))
+        holding, self._holding_queue = self._holding_queue, True  # the queued steps meet the finished update
+        try:
+            for name, fit in result["fits"]:
+                out.update(self._finish_predictor(fit) if name == "predictor" else self._finish_vae(fit))
+        finally:
+            self._holding_queue = holding
+        if self._queue and not holding:
+            self._submit_queue()
         return out
 
     def pop_reward_stats(self) -> dict[str, float]:

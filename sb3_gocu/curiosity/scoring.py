@@ -159,7 +159,11 @@ class _Writer:
             if not direct:
                 self._in_thread += 1
         if direct:
-            self.conn.send_bytes(payload)
+            try:
+                self.conn.send_bytes(payload)
+            except OSError as error:  # the reader is gone: reported as the thread's error would be
+                self.error = error
+                return
             self.direct += 1
         else:
             self._queue.put(payload)

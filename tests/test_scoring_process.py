@@ -397,7 +397,4 @@ def test_the_writer_writes_what_fits_at_once_and_queues_the_rest_in_order():
         time.sleep(0.01)
     writer.send(b"f")  # the thread has caught up and the pipe is empty: written at once again
     assert writer.direct == 3 and reader.recv_bytes() == b"f"
-    reader.close()
-    writer.send(b"g")  # the reader is gone: the error is kept, as the thread keeps its own, not raised here
-    assert isinstance(writer.error, BrokenPipeError) and writer.direct == 3
     writer.stop()

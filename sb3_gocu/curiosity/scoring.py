@@ -159,11 +159,7 @@ class _Writer:
             if not direct:
                 self._in_thread += 1
         if direct:
-            try:
-                self.conn.send_bytes(payload)
-            except OSError as error:  # the reader is gone: reported as the thread's error would be
-                self.error = error
-                return
+            self.conn.send_bytes(payload)
             self.direct += 1
         else:
             self._queue.put(payload)

@@ -1,7 +1,6 @@
 """Scoring in a worker process (``scoring_process=True``): the same values as scoring in the caller, bit for bit."""
 
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -370,31 +369,3 @@ def test_a_module_use_takes_the_queued_steps_first(monkeypatch):
 def test_queue_during_update_is_checked(value):
     with pytest.raises(ValueError, match=f"queue_during_update must be True or False, got {value!r}"):
         GoalCuriosityModule(SPACE, queue_during_update=value)
-
-
-def test_the_writer_writes_what_fits_at_once_and_queues_the_rest_in_order():
-    """_Writer: a message the pipe has room for, with nothing queued before it, is written by the caller; one that
-    does not fit goes to the writer thread, and so does every message after it until the thread has written it,
-    so the reader gets them all in order."""
-    import os
-    from multiprocessing.connection import Connection
-
-    from sb3_gocu.curiosity.scoring import _pipe_room, _Writer
-
-    r, w = os.pipe()
-    reader, writer = Connection(r, writable=False), _Writer(Connection(w, readable=False))
-    messages = [b"a" * 100, b"b" * 2000, b"c" * 100_000, b"d" * 10, b"e" * 50]  # the third overfills a 64 KiB pipe
-    assert _pipe_room(w) >= 65536
-    for m in messages[:2]:
-        writer.send(m)
-    assert writer.direct == 2
-    for m in messages[2:]:
-        writer.send(m)
-    assert writer.direct == 2, "after a message that did not fit, the rest wait behind it in the thread"
-    assert [reader.recv_bytes() for _ in messages] == messages
-    deadline = time.time() + 10
-    while writer._in_thread and time.time() < deadline:
-        time.sleep(0.01)
-    writer.send(b"f")  # the thread has caught up and the pipe is empty: written at once again
-    assert writer.direct == 3 and reader.recv_bytes() == b"f"
-    writer.stop()

@@ -13,15 +13,14 @@ pure functions of their arguments, so the module can run them wherever it likes:
   change; per step it receives the raw observations to embed and the memoised phi of the others, and sends
   back phi and the rewards. The process runs the same operations on the same inputs, with as many torch
   threads as the caller had, so its values are the same to the bit (``tests/test_scoring_process.py``), and
-  the caller may score any ticket itself instead (``GoalCuriosityModule.scoring_spill``). A message to it that
-  the pipe has no room for is written by a writer thread, so the caller never waits for room in the pipe.
+  the caller may score any ticket itself instead (``GoalCuriosityModule.scoring_spill``). Messages to it are
+  written by a writer thread, so the caller never waits for room in the pipe.
 
 No Stable-Baselines3 import.
 """
 
 from __future__ import annotations
 
-import array
 import os
 import pickle
 import queue
@@ -106,36 +105,15 @@ class _ProcessFuture:
         return self._result
 
 
-def _pipe_room(fd: int) -> int:
-    """Free bytes in the pipe whose write end is ``fd`` (Linux: its size less the unread bytes), or 0 where that
-    cannot be asked."""
-    try:
-        import fcntl
-        import termios
-
-        size = fcntl.fcntl(fd, fcntl.F_GETPIPE_SZ)  # type: ignore[attr-defined]
-        unread = array.array("i", [0])
-        fcntl.ioctl(fd, termios.FIONREAD, unread, True)
-        return size - unread[0]
-    except (ImportError, AttributeError, OSError):
-        return 0
-
-
 class _Writer:
-    """Writes messages into a pipe, in order, so that the caller never waits for the reader to make room (a
-    scoring process busy with earlier tickets; a trained agent's changed goal halves, ~100 KB a step, fill the
-    64 KiB pipe). A message the pipe has room for, with none before it still queued, is written at once by the
-    caller (such a write does not block); the others by a thread of its own. Waking that thread for every message
-    cost the caller the GIL and a core's scheduling each time: 1.3 ms a message on a busy machine (measured over
-    40k DoorKey-8x8 steps beside two training runs). ``error`` holds the ``OSError`` that ended the thread, if any."""
+    """Writes messages into a pipe, in order, from a thread of its own: the caller never waits for the reader to
+    make room (a scoring process busy with earlier tickets; a trained agent's changed goal halves, ~100 KB a
+    step, fill the 64 KiB pipe). ``error`` holds the ``OSError`` that ended it, if any."""
 
     def __init__(self, conn: Connection) -> None:
         self.conn = conn
         self.error: OSError | None = None
-        self.direct = 0  # messages the caller wrote itself
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self._lock = threading.Lock()
-        self._in_thread = 0  # messages handed to the thread and not written yet
         self._thread = threading.Thread(target=self._run, name="gocu-score-writer", daemon=True)
         self._thread.start()
 
@@ -149,20 +127,9 @@ class _Writer:
             except OSError as error:
                 self.error = error
                 return
-            with self._lock:
-                self._in_thread -= 1
 
     def send(self, payload: bytes) -> None:
-        with self._lock:
-            # the 4-byte length header of Connection.send_bytes, and the payload
-            direct = self._in_thread == 0 and self.error is None and _pipe_room(self.conn.fileno()) >= len(payload) + 4
-            if not direct:
-                self._in_thread += 1
-        if direct:
-            self.conn.send_bytes(payload)
-            self.direct += 1
-        else:
-            self._queue.put(payload)
+        self._queue.put(payload)
 
     def stop(self) -> None:
         """Stop after the messages queued so far (it does not wait)."""

@@ -15,7 +15,6 @@ bookkeeping, PPO update, curiosity inference, VAE training (pretraining included
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import platform
@@ -34,6 +33,7 @@ from sb3_gocu.callbacks import GoCuCallback
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from malloc_thresholds import fix_malloc_thresholds  # noqa: E402
+from split_updates import weights  # noqa: E402  (the same hash as split_updates.py's runs)
 
 PPO_SETTINGS: dict[str, Any] = dict(PAPER_PPO_KWARGS)  # both algorithms get them explicitly
 
@@ -156,12 +156,8 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
 def weights_hash(model: Any) -> str:
     """First 16 hex digits of the SHA-256 of the policy's weights (and the VAE's and the predictor's): arms that
     must train the same networks (options that change only the wall time) show the same digits."""
-    h = hashlib.sha256()
     nets = [model.policy] + ([model.curiosity.vae, model.curiosity.predictor] if getattr(model, "curiosity", None) is not None else [])
-    for net in nets:
-        for t in net.state_dict().values():
-            h.update(t.detach().cpu().numpy().tobytes())
-    return h.hexdigest()[:16]
+    return weights(*nets)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:

@@ -85,6 +85,12 @@ def env_name(directory: pathlib.Path) -> str | None:
             return json.loads(state.read_text())["config"]["env"]
         except (OSError, ValueError, KeyError):
             continue
+    summary = directory / "summary.md"  # a results folder keeps the summary, not the checkpoints
+    if summary.is_file():
+        # the heading sample_efficiency.py's write_summary gives it; an env id ends in -v<version>
+        m = re.match(r"# Sample efficiency: (\S+-v\d+)\s*$", summary.read_text().split("\n", 1)[0])
+        if m:
+            return m.group(1)
     return None
 
 
@@ -130,7 +136,9 @@ def plot(directory: str | pathlib.Path, out: str | pathlib.Path | None = None, m
     what = f"mean over seeds, band = {'min-max' if band == 'minmax' else '+- std'}"
     if per_seed:
         what = f"thin: each seed; thick: {what}, where every seed ran"
-    ax.set_title(title or f"{env_name(directory) or directory.name}: {what}", fontsize=10 if per_seed else None)
+    # per seed, the longer caption goes on a line of its own (one line would be cut at the figure's edge)
+    sep = "\n" if per_seed else ": "
+    ax.set_title(title or f"{env_name(directory) or directory.name}{sep}{what}", fontsize=10 if per_seed else None)
     ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 0))
     ax.grid(alpha=0.3)
     ax.legend(loc="center right" if per_seed else "upper left")

@@ -108,6 +108,20 @@ def test_plot(plot_curves, two_runs, tmp_path):
     assert png2.stat().st_size > 1000
 
 
+def test_plot_names_the_env_of_a_results_folder(plot_curves, two_runs, tmp_path):
+    """A folder copied to benchmarks/results keeps summary.md but not the checkpoints: the env id comes from the
+    summary's heading, and a heading without an id (the run's env not recorded) gives none."""
+    out, _ = two_runs
+    env = plot_curves.env_name(out)  # from the checkpoints' state files
+    assert env == "GoCu/DoorKey-5x5-v0"
+    copied = tmp_path / "results"
+    copied.mkdir()
+    (copied / "summary.md").write_text((out / "summary.md").read_text())
+    assert plot_curves.env_name(copied) == env
+    (copied / "summary.md").write_text("# Sample efficiency: env not recorded in --out (pass --env)\n")
+    assert plot_curves.env_name(copied) is None
+
+
 def test_resume_after_crash(se, tmp_path, monkeypatch):
     """A run killed after its 2048-step checkpoint continues from there on the same command."""
     th.set_num_threads(1)

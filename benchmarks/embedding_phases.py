@@ -28,9 +28,10 @@ themselves (phi = the pixels in [0, 1]) are printed first: how large each change
 
 ``--refit SPEC`` (one or more JSON dicts) also retrains the model's VAE on the model's memory bank, as a VAE update
 in training does (de-duplicated, weighted by multiplicity), once per SPEC, and measures its phi the same way:
-``vae_beta`` (beta of eq 8), ``vae_epochs`` (default the module's), ``vae_patience`` (default 0: all epochs),
-``latent_dim`` and ``fresh`` (start from new random weights instead of the model's; implied by a ``latent_dim``
-other than the model's). The model's own VAE is left as it was.
+``vae_beta`` (beta of eq 8), ``vae_pixel_weighting`` (exponent of the rare-colour weighting), ``vae_epochs``
+(default the module's), ``vae_patience`` (default 0: all epochs), ``latent_dim`` and ``fresh`` (start from new
+random weights instead of the model's; implied by a ``latent_dim`` other than the model's). The model's own VAE is
+left as it was.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ import curiosity_map  # noqa: E402  (DoorKey objects, phases, flood fill and ren
 
 STATES = ("bare", "floor_key", "carried", "door_open")
 CHANGES = {"carried": ("carried", "bare"), "floor_key": ("floor_key", "bare"), "door_open": ("door_open", "carried")}
-REFIT_KEYS = {"vae_beta", "vae_epochs", "vae_patience", "latent_dim", "fresh"}
+REFIT_KEYS = {"vae_beta", "vae_pixel_weighting", "vae_epochs", "vae_patience", "latent_dim", "fresh"}
 
 
 def set_state(base: Any, state: str, objects: tuple) -> None:
@@ -152,11 +153,12 @@ def refit_vae(module: Any, spec: dict[str, Any], seed: int = 0) -> tuple[th.nn.M
         vae = type(module.vae)(module.adapter.input_shape, embed_dim=module.vae.fc.out_features, latent_dim=latent)
     if not fresh:
         vae.load_state_dict(module.vae.state_dict())
-    saved = {name: getattr(module, name) for name in ("vae", "vae_optimizer", "vae_beta", "last_vae_update")}
+    saved = {name: getattr(module, name) for name in ("vae", "vae_optimizer", "vae_beta", "vae_pixel_weighting", "last_vae_update")}
     lr = module.vae_optimizer.param_groups[0]["lr"]
     try:
         module.vae, module.vae_optimizer = vae, th.optim.Adam(vae.parameters(), lr=lr)
         module.vae_beta = float(spec.get("vae_beta", module.vae_beta))
+        module.vae_pixel_weighting = float(spec.get("vae_pixel_weighting", module.vae_pixel_weighting))
         job = module._prepare_vae(spec.get("vae_epochs"), patience=int(spec.get("vae_patience", 0)))
         if job is None:
             raise ValueError("the model's memory bank is empty: nothing to retrain the VAE on")

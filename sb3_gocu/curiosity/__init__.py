@@ -2,7 +2,7 @@
 
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.module import GoalCuriosityModule
-from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, vae_loss
+from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, PixelWeights, vae_loss
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reward import (
     AGGREGATIONS,
@@ -27,6 +27,7 @@ __all__ = [
     "MemoryBank",
     "MlpVAE",
     "ObservationAdapter",
+    "PixelWeights",
     "RunningMeanStd",
     "TrajectoryStore",
     "complexity_score",

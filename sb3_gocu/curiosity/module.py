@@ -39,7 +39,7 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
-from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, sharded_vae_gradients, vae_loss
+from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, PixelWeights, sharded_vae_gradients, vae_loss
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.parallel import SplitWork, splitting
 from sb3_gocu.curiosity.scoring import ProcessScorer, eq13_rows, score_rows
@@ -222,6 +222,11 @@ class GoalCuriosityModule:
     :param embed_dim: size of the embedding phi (the FC layer after the VAE encoder)
     :param latent_dim: size of the VAE latent (mu, sigma)
     :param vae_beta: beta of eq 8
+    :param vae_pixel_weighting: exponent (in [0, 1]) of the rare-colour weighting of the reconstruction term of
+        eq 8 (:class:`~sb3_gocu.curiosity.networks.PixelWeights`, fitted at each VAE update to the colours of the
+        observations it trains on): a pixel of a colour with share f of the pixels weighs ``f ** -exponent``,
+        scaled so the mean pixel weight is 1. 0 (default, the paper): every pixel weighs 1. Image observations
+        only. Not in the paper: with 0 the VAE drops the key, the door's colour and the goal square of DoorKey
     :param vae_lr: Adam learning rate of the VAE
     :param vae_batch_size: minibatch size of VAE training
     :param vae_epochs: epochs over the memory bank at each VAE update (the most, with ``vae_patience``)
@@ -386,6 +391,7 @@ class GoalCuriosityModule:
         embed_dim: int = 128,
         latent_dim: int = 10,
         vae_beta: float = 1.0,
+        vae_pixel_weighting: float = 0.0,
         vae_lr: float = 1e-3,
         vae_batch_size: int = 128,
         vae_epochs: int = 20,
@@ -461,6 +467,11 @@ class GoalCuriosityModule:
         for name, value in (("predictor_lr", predictor_lr), ("vae_lr", vae_lr)):
             _check(value > 0, f"{name} must be > 0, got {value}")
         _check(vae_beta >= 0, f"vae_beta must be >= 0, got {vae_beta}")
+        _check(
+            isinstance(vae_pixel_weighting, (int, float, np.floating, np.integer)) and not isinstance(vae_pixel_weighting, bool)
+            and 0 <= vae_pixel_weighting <= 1,
+            f"vae_pixel_weighting must be in [0, 1], got {vae_pixel_weighting!r}",
+        )
         for name, value in (("train_in_background", train_in_background), ("overlap_ppo_update", overlap_ppo_update)):
             _check(isinstance(value, (bool, np.bool_)), f"{name} must be True or False, got {value!r}")
         _check(
@@ -497,6 +508,7 @@ class GoalCuriosityModule:
         self.predictor_train_freq = predictor_train_freq
         self.predictor_dedupe = predictor_dedupe
         self.vae_beta = vae_beta
+        self.vae_pixel_weighting = float(vae_pixel_weighting)
         self.vae_batch_size = vae_batch_size
         self.vae_epochs = vae_epochs
         self.vae_train_freq = vae_train_freq
@@ -531,6 +543,8 @@ class GoalCuriosityModule:
         self.rng = np.random.default_rng(seed)
         self._torch_gen = th.Generator().manual_seed(int(self.rng.integers(2**62)))
         vae_cls = ConvVAE if self.adapter.is_image else MlpVAE
+        _check(self.vae_pixel_weighting == 0 or self.adapter.is_image,
+               f"vae_pixel_weighting applies to image observations, got {vae_pixel_weighting} with observations of shape {self.adapter.input_shape}")
         init_seed = int(self.rng.integers(2**62))
         # with a seed, the initial weights depend on it alone, not on the global torch RNG's state
         with th.random.fork_rng(devices=[], enabled=seed is not None):
@@ -1185,6 +1199,11 @@ class GoalCuriosityModule:
             weights = (c * len(c) / c.sum()).astype(np.float32)
         self.last_vae_update = self.n_recorded_steps
         job: dict[str, Any] = {"data": data, "weights": weights, "epochs": epochs, "threads": self._update_thread_count(), "patience": patience}
+        if self.vae_pixel_weighting > 0:  # fitted to all the update's observations, the held-out ones included
+            job["pixel_weights"] = PixelWeights.fit(
+                ((self.adapter.to_tensor(data[i : i + 1024], "cpu"), th.from_numpy(weights[i : i + 1024])) for i in range(0, len(data), 1024)),
+                self.vae_pixel_weighting,
+            )
         n_val = int(round(self.vae_holdout * len(data)))
         if patience > 0 and n_val >= 1:
             order = self.rng.permutation(len(data))
@@ -1221,7 +1240,7 @@ class GoalCuriosityModule:
         return fit
 
     @th.no_grad()
-    def _vae_val_loss(self, data: np.ndarray, weights: np.ndarray) -> float:
+    def _vae_val_loss(self, data: np.ndarray, weights: np.ndarray, pixel_weights: PixelWeights | None = None) -> float:
         """Loss of eq 8 (weighted mean, eval mode: z = mu) on held-out observations (by chunks of 1024; with
         ``vae_shards`` > 1 the chunks run as parts, see :meth:`_run_parts`)."""
         was_training = self.vae.training
@@ -1230,7 +1249,7 @@ class GoalCuriosityModule:
         def chunk(start: int) -> float:
             x = self.adapter.to_tensor(data[start : start + 1024], self.device)
             w = th.from_numpy(weights[start : start + 1024]).to(self.device)
-            return float(vae_loss(self.vae, x, self.vae_beta, w)[0]) * len(x)
+            return float(vae_loss(self.vae, x, self.vae_beta, w, pixel_weights=pixel_weights)[0]) * len(x)
 
         starts = range(0, len(data), 1024)
         if self.vae_shards > 1:
@@ -1240,14 +1259,16 @@ class GoalCuriosityModule:
         self.vae.train(was_training)
         return sum(sums, 0.0) / len(data)
 
-    def _vae_step(self, x: th.Tensor, w: th.Tensor) -> tuple[bool, float]:
+    def _vae_step(self, x: th.Tensor, w: th.Tensor, pixel_weights: PixelWeights | None = None) -> tuple[bool, float]:
         """One optimiser step of the VAE on a minibatch (``vae_shards``); whether it stepped, and the loss."""
         grads = None
         with self._train_autocast():  # _run_parts carries it into the parts' threads
             if self.vae_shards == 1:
-                loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen)
+                loss, _, _ = vae_loss(self.vae, x, self.vae_beta, w, generator=self._torch_gen, pixel_weights=pixel_weights)
             else:
-                loss, grads = sharded_vae_gradients(self.vae, x, self.vae_beta, w, self._torch_gen, self.vae_shards, self._run_parts)
+                loss, grads = sharded_vae_gradients(
+                    self.vae, x, self.vae_beta, w, self._torch_gen, self.vae_shards, self._run_parts, pixel_weights
+                )
         return self._guarded_step(self.vae, self.vae_optimizer, loss, grads), float(loss.detach())
 
     def _fit_vae(
@@ -1260,6 +1281,7 @@ class GoalCuriosityModule:
         on_epoch: Callable[[int], None] | None = None,
         threads: int | None = None,
         patience: int | None = None,
+        pixel_weights: PixelWeights | None = None,
     ) -> dict[str, Any]:
         """Fit the VAE (eq 8) to ``data`` (weighted by multiplicity) for at most ``epochs`` epochs.
 
@@ -1268,13 +1290,15 @@ class GoalCuriosityModule:
         :param on_epoch: called with the epoch number after each epoch (the VAE is in train mode), for probes
         :param threads: torch threads of the fit (None: the calling thread's)
         :param patience: early stopping's patience (None: ``vae_patience``)
+        :param pixel_weights: weights of the pixels in the reconstruction term, of training and held-out loss alike
+            (``vae_pixel_weighting``; None: all 1)
         """
         patience = self.vae_patience if patience is None else patience
         with torch_threads(threads), splitting(self._split_work(vae=True)):
             t0 = time.perf_counter()
             snapshot = self._snapshot(self.vae, self.vae_optimizer)
             early = val_data is not None and val_weights is not None and patience > 0
-            start_loss = self._vae_val_loss(val_data, val_weights) if early else float("nan")
+            start_loss = self._vae_val_loss(val_data, val_weights, pixel_weights) if early else float("nan")
             stopping, best_state = EarlyStopping(start_loss, patience), None
             self.vae.train()
             losses, skipped = [], 0
@@ -1286,7 +1310,7 @@ class GoalCuriosityModule:
                     idx = order[start : start + self.vae_batch_size]
                     x = self.adapter.to_tensor(data[idx], self.device)
                     w = th.from_numpy(weights[idx]).to(self.device)
-                    stepped, loss_value = self._vae_step(x, w)
+                    stepped, loss_value = self._vae_step(x, w, pixel_weights)
                     if not stepped:
                         skipped += 1
                         continue
@@ -1294,7 +1318,7 @@ class GoalCuriosityModule:
                 if on_epoch is not None:
                     on_epoch(epoch)
                 if early:
-                    if stopping.update(epoch + 1, self._vae_val_loss(val_data, val_weights)):
+                    if stopping.update(epoch + 1, self._vae_val_loss(val_data, val_weights, pixel_weights)):
                         best_state = copy.deepcopy(self.vae.state_dict())
                     elif stopping.stop:
                         break

@@ -7,7 +7,7 @@ layers (:class:`FoldedPredictor`), which computes the same function as the modul
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import torch as th
 from torch import nn
@@ -83,8 +83,13 @@ class ConvVAE(nn.Module):
         logits = self.deconv(y)[..., : self.input_shape[1], : self.input_shape[2]]
         return logits, mu, logvar
 
-    def reconstruction_loss(self, logits: th.Tensor, x: th.Tensor) -> th.Tensor:
-        return F.binary_cross_entropy_with_logits(logits, x, reduction="none").flatten(1).sum(1)
+    def reconstruction_loss(self, logits: th.Tensor, x: th.Tensor, pixel_weights: th.Tensor | None = None) -> th.Tensor:
+        """Binary cross-entropy summed over each image's channels and pixels, the pixels weighted by
+        ``pixel_weights`` (n, H, W) if given."""
+        bce = F.binary_cross_entropy_with_logits(logits, x, reduction="none")
+        if pixel_weights is not None:
+            bce = bce * pixel_weights.unsqueeze(1)
+        return bce.flatten(1).sum(1)
 
     def reconstruct(self, x: th.Tensor) -> th.Tensor:
         return th.sigmoid(self(x)[0])
@@ -128,6 +133,74 @@ class MlpVAE(nn.Module):
         return self(x)[0]
 
 
+class PixelWeights:
+    """Per-pixel weights of the reconstruction term of eq 8 that make rare colours count: a pixel of colour c
+    weighs ``f_c ** -exponent / sum_c' f_c' ** (1 - exponent)``, where ``f_c`` is the share of colour c among
+    the pixels of the data the weights are fitted to. Over that data the mean pixel weight is 1, so the
+    reconstruction term keeps its scale against the KL term; exponent 0 weighs every pixel 1 (the paper),
+    exponent 1 gives every colour the same total weight.
+
+    On DoorKey the key, the door and the goal square are a few pixels of yellow or green in a grey view: the
+    paper's loss lets the VAE drop them and pay almost nothing (``benchmarks/embedding_phases.py``).
+
+    A colour is the pixel's channel values in [0, 1], read as bytes and cut to ``min(8, 15 // C)`` bits each
+    (5 bits of red, green and blue for RGB, all 8 for grey), so at most 2**15 colours. A colour the weights
+    were not fitted on weighs as one seen in a single pixel.
+
+    :param table: weight of each colour id, shape (2 ** (bits * C),)
+    :param channels: C
+    """
+
+    def __init__(self, table: th.Tensor, channels: int) -> None:
+        self.channels = channels
+        self.bits = min(8, 15 // channels)
+        if table.shape != (2 ** (self.bits * channels),):
+            raise ValueError(f"table must have shape ({2 ** (self.bits * channels)},) for {channels} channels, got {tuple(table.shape)}")
+        self.table = table
+
+    @staticmethod
+    def colour_ids(x: th.Tensor) -> th.Tensor:
+        """Colour id of every pixel of ``x`` (n, C, H, W) in [0, 1]: shape (n, H, W), int64."""
+        channels = x.shape[1]
+        bits = min(8, 15 // channels)
+        q = th.round(x.float() * 255).to(th.int64) >> (8 - bits)
+        ids = q[:, 0]
+        for c in range(1, channels):
+            ids = (ids << bits) | q[:, c]
+        return ids
+
+    @classmethod
+    def fit(cls, batches: Iterable[tuple[th.Tensor, th.Tensor]], exponent: float) -> "PixelWeights":
+        """Weights from colour shares over ``batches`` of (images (n, C, H, W) in [0, 1], sample weights (n,))
+        (a sample weight is an image's multiplicity).
+
+        :param exponent: in [0, 1]
+        """
+        if not 0 <= exponent <= 1:
+            raise ValueError(f"exponent must be in [0, 1], got {exponent}")
+        counts, channels = None, None
+        for x, w in batches:
+            channels = x.shape[1]
+            ids = cls.colour_ids(x).flatten(1)
+            per_image = w.to(th.float64)[:, None].expand_as(ids)
+            part = th.bincount(ids.flatten(), per_image.flatten(), minlength=2 ** (min(8, 15 // channels) * channels))
+            counts = part if counts is None else counts + part
+        if counts is None or float(counts.sum()) <= 0:
+            raise ValueError("PixelWeights.fit needs at least one image of positive weight")
+        share = counts / counts.sum()
+        seen = share > 0
+        share = th.where(seen, share, share[seen].min())
+        raw = share ** -exponent
+        table = raw / (share[seen] * raw[seen]).sum()
+        return cls(table.float(), channels)
+
+    def __call__(self, x: th.Tensor) -> th.Tensor:
+        """Weights of the pixels of ``x`` (n, C, H, W) in [0, 1]: shape (n, H, W)."""
+        if x.shape[1] != self.channels:
+            raise ValueError(f"x must have {self.channels} channels (the weights were fitted on them), got {x.shape[1]}")
+        return self.table.to(x.device)[self.colour_ids(x)]
+
+
 def vae_loss(
     vae: ConvVAE | MlpVAE,
     x: th.Tensor,
@@ -136,6 +209,7 @@ def vae_loss(
     generator: th.Generator | None = None,
     noise: th.Tensor | None = None,
     batch_size: int | None = None,
+    pixel_weights: PixelWeights | None = None,
 ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
     """Negative of eq 8, averaged over the batch: reconstruction + beta * KL(q(z|x) || N(0, I)).
 
@@ -144,11 +218,17 @@ def vae_loss(
     :param noise: the reparameterisation noise itself (instead of drawing it)
     :param batch_size: ``x`` is a part of a batch of this size: the terms are summed over ``x`` and divided by
         it, so the parts' losses add up to the batch's (None: the mean over ``x``)
+    :param pixel_weights: weights of the pixels in the reconstruction term (images only; None: all 1, the paper)
     :return: total loss, reconstruction term, KL term
     """
     out, mu, logvar = vae(x, generator, noise)
     out, mu, logvar = out.float(), mu.float(), logvar.float()  # the loss in float32 also under autocast
-    recon = vae.reconstruction_loss(out, x)
+    if pixel_weights is None:
+        recon = vae.reconstruction_loss(out, x)
+    elif isinstance(vae, ConvVAE):
+        recon = vae.reconstruction_loss(out, x, pixel_weights(x))
+    else:
+        raise ValueError(f"pixel_weights apply to a ConvVAE (image observations), got {type(vae).__name__}")
     kl = -0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(1)
     if weights is not None:
         recon, kl = recon * weights, kl * weights
@@ -167,6 +247,7 @@ def sharded_vae_gradients(
     generator: th.Generator | None,
     shards: int,
     run_all: Callable[[list[Callable[[], tuple[th.Tensor, tuple[th.Tensor | None, ...]]]]], list],
+    pixel_weights: PixelWeights | None = None,
 ) -> tuple[th.Tensor, list[th.Tensor]]:
     """The loss of :func:`vae_loss` on a minibatch and its gradient, computed as ``shards`` independent parts.
 
@@ -177,6 +258,7 @@ def sharded_vae_gradients(
     thread count (the module runs each with 1). The noise is drawn for the whole minibatch first, from
     ``generator``, exactly as :func:`vae_loss` draws it, so only the summation order differs from it.
 
+    :param pixel_weights: as in :func:`vae_loss`
     :return: the loss (detached) and one gradient per parameter of ``vae`` (in ``vae.parameters()`` order;
         zeros for a parameter the loss does not reach)
     """
@@ -190,7 +272,8 @@ def sharded_vae_gradients(
         noise = th.randn((n, latent_dim), generator=generator, dtype=vae.mu.weight.dtype, device=x.device)
 
     def part(rows: slice) -> tuple[th.Tensor, tuple[th.Tensor | None, ...]]:
-        loss, _, _ = vae_loss(vae, x[rows], beta, weights[rows], noise=None if noise is None else noise[rows], batch_size=n)
+        loss, _, _ = vae_loss(vae, x[rows], beta, weights[rows], noise=None if noise is None else noise[rows], batch_size=n,
+                              pixel_weights=pixel_weights)
         return loss.detach(), th.autograd.grad(loss, params, allow_unused=True)
 
     bounds = [len(b) for b in th.tensor_split(th.arange(n), shards)]

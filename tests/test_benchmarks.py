@@ -220,6 +220,16 @@ def test_bf16_scoring_compares_both_dtypes_on_a_saved_model(two_runs):
     assert sorted(result["speed"]) == [1, 3] and all(a > 0 and b > 0 for a, b in result["speed"].values())
 
 
+def test_pixel_weights_cost_times_the_fit_and_both_steps_on_a_saved_models_bank(two_runs):
+    bench = load_script("pixel_weights_cost", "benchmarks/pixel_weights_cost.py")
+    out, _ = two_runs
+    r = bench.main(["--model", str(out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"), "--batch", "8", "--steps", "2", "--repeats", "1"])
+    assert 0 < r["distinct"] <= r["bank"] and r["fit_s"] > 0
+    assert r["weight_min"] < 1 < r["weight_max"], "common colours weigh less than 1, rare ones more"
+    assert r["step_s"]["unweighted"] > 0 and r["step_s"]["weighted"] > 0
+    assert r["ratio"] == pytest.approx(r["step_s"]["weighted"] / r["step_s"]["unweighted"])
+
+
 def test_view_aliasing_renders_every_standable_cell_of_each_phase():
     """DoorKey-5x5, layout 0: the key phase covers the left room (the key's cell too: it is carried), the door
     phase adds the door's cell and the right room; 4 directions each. A right-room view counts as aliased

@@ -289,7 +289,7 @@ def scripted_vae_update(losses, patience=1, epochs=6):
     module, its statistics, the weights before the update and after each epoch."""
     module = recorded_module(vae_patience=patience, vae_epochs=epochs)
     script = iter(losses)
-    module._vae_val_loss = lambda data, weights: next(script)
+    module._vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
     states = [copy.deepcopy(module.vae.state_dict())]
     job = module._prepare_vae(None)
     fit = module._fit_vae(**job, on_epoch=lambda epoch: states.append(copy.deepcopy(module.vae.state_dict())))
@@ -349,7 +349,7 @@ def test_pretraining_has_its_own_patience(pretrain_kwargs):
     measured), and the updates after it stop early with vae_patience."""
     module = recorded_module(vae_patience=1, vae_epochs=4, **pretrain_kwargs)
     script = iter([10.0, 11.0, 12.0])
-    module._vae_val_loss = lambda data, weights: next(script)
+    module._vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
     out = module.pretrain()
     assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (4, 4) and module.pretrained
     assert next(script) == 10.0, "no held-out loss measured in the pretraining"
@@ -363,7 +363,7 @@ def test_pretraining_follows_vae_patience_when_none():
     module = recorded_module(vae_patience=1, vae_pretrain_patience=None, vae_epochs=4)
     assert module.vae_pretrain_patience == 1
     script = iter([10.0, 11.0, 12.0])
-    module._vae_val_loss = lambda data, weights: next(script)
+    module._vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
     out = module.pretrain()
     assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (1, 0)
 

@@ -149,3 +149,18 @@ def test_a_vae_update_fits_the_weights_to_its_observations_and_trains_on_them():
     assert weighted.stats["vae_loss"] != pytest.approx(plain.stats["vae_loss"], rel=1e-3)
     a, b = weighted.vae.state_dict(), plain.vae.state_dict()
     assert any(not th.equal(a[k], b[k]) for k in a), "same seed, other loss: other weights"
+
+
+def test_a_state_carries_its_weighting_and_an_older_state_trained_without_it():
+    saved = module(vae_pixel_weighting=0.25).state_dict()
+    assert saved["settings"] == {"vae_pixel_weighting": 0.25}
+    restored = module()  # the default, 0.5 for images
+    restored.load_state_dict(saved)
+    assert restored.vae_pixel_weighting == 0.25, "a resumed run keeps the loss it trained with"
+    older = {k: v for k, v in saved.items() if k != "settings"}  # as saved before the setting existed
+    by_default = module()
+    by_default.load_state_dict(older)
+    assert by_default.vae_pixel_weighting == 0.0, "an older state's VAE trained with every pixel weighing 1"
+    explicit = module(vae_pixel_weighting=0.5)
+    explicit.load_state_dict(older)
+    assert explicit.vae_pixel_weighting == 0.5, "a value given explicitly is kept"

@@ -234,8 +234,9 @@ class GoalCuriosityModule:
         run each on one machine (README, Results): with 0.5, 3 of 3 of seeds 0-2 and 6 of 7 in all reached a mean
         return of 0.9 within 0.8M steps, in 4.59M steps summed over seeds 0-6 (a miss counted at 800,768), against
         2 of 3, 5 of 7 and 5.04M with 0. Of 0.5 and 1, 0.5 moved phi more for the key (a fresh VAE fitted to a
-        trained agent's memory bank, ``benchmarks/embedding_phases.py --refit``). Fitting the weights costs about
-        0.3 s per VAE update on a 10,000-observation bank (``benchmarks/pixel_weights_cost.py``)
+        trained agent's memory bank, ``benchmarks/embedding_phases.py --refit``). Fitting the weights took 0.1 s
+        per VAE update on a trained DoorKey-8x8 agent's bank, and a VAE step took as long with them as without
+        (``benchmarks/pixel_weights_cost.py``)
     :param vae_lr: Adam learning rate of the VAE
     :param vae_batch_size: minibatch size of VAE training
     :param vae_epochs: epochs over the memory bank at each VAE update (the most, with ``vae_patience``)
@@ -554,6 +555,7 @@ class GoalCuriosityModule:
         vae_cls = ConvVAE if self.adapter.is_image else MlpVAE
         _check(not vae_pixel_weighting or self.adapter.is_image,
                f"vae_pixel_weighting applies to image observations, got {vae_pixel_weighting} with observations of shape {self.adapter.input_shape}")
+        self._pixel_weighting_given = vae_pixel_weighting is not None
         if vae_pixel_weighting is None:
             vae_pixel_weighting = DEFAULT_PIXEL_WEIGHTING if self.adapter.is_image else 0.0
         self.vae_pixel_weighting = float(vae_pixel_weighting)
@@ -1742,6 +1744,8 @@ class GoalCuriosityModule:
                 "visit_counts": [_counts_to_state(c) for c in self._visit_counts],
             },
             "phi_cache": _cache_to_state(self._phi_cache),
+            # the loss the VAE trains with goes with the VAE, so a resumed run keeps it (see load_state_dict)
+            "settings": {"vae_pixel_weighting": self.vae_pixel_weighting},
             "counters": {
                 "pretrained": self.pretrained,
                 "n_recorded_steps": self.n_recorded_steps,
@@ -1751,7 +1755,11 @@ class GoalCuriosityModule:
         }
 
     def load_state_dict(self, state: dict[str, Any], strict: bool = True) -> None:
-        """Restore a :meth:`state_dict` (``strict`` is accepted for SB3's ``set_parameters``)."""
+        """Restore a :meth:`state_dict` (``strict`` is accepted for SB3's ``set_parameters``).
+
+        The state's ``vae_pixel_weighting`` replaces the module's, so a resumed run trains its VAE as before; a
+        state saved before the setting existed (no ``"settings"``) trained with 0, which it gets unless the module
+        was given a value explicitly."""
         missing = {"vae", "predictor", "goal_buffer", "memory", "normalizer", "counters"} - set(state)
         if missing:
             raise ValueError(f"curiosity state is missing {sorted(missing)}: not a GoalCuriosityModule state_dict")
@@ -1778,6 +1786,11 @@ class GoalCuriosityModule:
             self.rng.bit_generator.state = state["rng"]
         if "torch_rng" in state:
             self._torch_gen.set_state(state["torch_rng"])
+        settings = state.get("settings", {})
+        if "vae_pixel_weighting" in settings:
+            self.vae_pixel_weighting = float(settings["vae_pixel_weighting"])
+        elif not self._pixel_weighting_given:
+            self.vae_pixel_weighting = 0.0  # saved before the weighting existed: the VAE trained without it
         c = state["counters"]
         self.pretrained = bool(c["pretrained"])
         self.n_recorded_steps = int(c["n_recorded_steps"])

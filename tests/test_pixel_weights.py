@@ -95,6 +95,8 @@ def test_bad_pixel_weights_are_refused():
         pw(th.zeros(1, 3, 2, 2))
     with pytest.raises(ValueError, match=r"table must have shape \(32768,\) for 3 channels, got \(256,\)"):
         PixelWeights(th.ones(256), 3)
+    with pytest.raises(ValueError, match=r"pixel weights need images in \[0, 1\] .* got values in \[0.0, 2.0\]"):
+        pw(th.tensor([0.0, 2.0]).view(1, 1, 1, 2))
     with pytest.raises(ValueError, match="pixel_weights apply to a ConvVAE .* got MlpVAE"):
         vae_loss(MlpVAE((4,), embed_dim=8, latent_dim=2), th.rand(2, 4), pixel_weights=pw)
 

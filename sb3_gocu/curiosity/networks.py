@@ -161,6 +161,10 @@ class PixelWeights:
     @staticmethod
     def colour_ids(x: th.Tensor) -> th.Tensor:
         """Colour id of every pixel of ``x`` (n, C, H, W) in [0, 1]: shape (n, H, W), int64."""
+        if x.numel() and (float(x.min()) < 0 or float(x.max()) > 1):
+            raise ValueError(
+                f"pixel weights need images in [0, 1] (the VAE's Bernoulli pixels), got values in [{float(x.min())}, {float(x.max())}]"
+            )
         channels = x.shape[1]
         bits = min(8, 15 // channels)
         q = th.round(x.float() * 255).to(th.int64) >> (8 - bits)

@@ -5,7 +5,7 @@
 From a saved PPO_GoCu model's memory bank (the observations a VAE update trains on; without ``--model``, 10,000
 observations of DoorKey-8x8 under random actions), this times
 
-* ``fit``: :meth:`PixelWeights.fit` on the whole bank (de-duplicated and weighted by multiplicity, as the module's
+* ``fit``: :meth:`PixelWeights.fit_observations` on the whole bank (de-duplicated and weighted by multiplicity, as the module's
   VAE update does; once per VAE update, i.e. every ``vae_train_freq`` steps);
 * ``step``: one VAE optimiser step (eq 8, Adam) on a minibatch of ``--batch`` observations of the bank, with and
   without the weights, the two arms alternating ``--repeats`` times after 3 warm-up steps each, ``--steps`` steps
@@ -68,9 +68,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(f"bank: {len(bank)} observations, {len(data)} distinct, shape {data.shape[1:]}")
 
     t0 = time.perf_counter()
-    weights = PixelWeights.fit(
-        ((to_tensor(data[i : i + 1024]), th.from_numpy(counts[i : i + 1024])) for i in range(0, len(data), 1024)), args.exponent
-    )
+    weights = PixelWeights.fit_observations(data, counts, to_tensor, args.exponent)
     fit_s = time.perf_counter() - t0
     used = weights.table[th.unique(PixelWeights.colour_ids(to_tensor(data[: min(len(data), 4096)])))]
     print(f"fit: {fit_s * 1000:.0f} ms; weights of the colours in view {float(used.min()):.3f} .. {float(used.max()):.1f}")

@@ -1214,10 +1214,7 @@ class GoalCuriosityModule:
         self.last_vae_update = self.n_recorded_steps
         job: dict[str, Any] = {"data": data, "weights": weights, "epochs": epochs, "threads": self._update_thread_count(), "patience": patience}
         if self.vae_pixel_weighting > 0:  # fitted to all the update's observations, the held-out ones included
-            job["pixel_weights"] = PixelWeights.fit(
-                ((self.adapter.to_tensor(data[i : i + 1024], "cpu"), th.from_numpy(weights[i : i + 1024])) for i in range(0, len(data), 1024)),
-                self.vae_pixel_weighting,
-            )
+            job["pixel_weights"] = PixelWeights.fit_observations(data, weights, self.adapter.to_tensor, self.vae_pixel_weighting)
         n_val = int(round(self.vae_holdout * len(data)))
         if patience > 0 and n_val >= 1:
             order = self.rng.permutation(len(data))

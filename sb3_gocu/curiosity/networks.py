@@ -7,7 +7,7 @@ layers (:class:`FoldedPredictor`), which computes the same function as the modul
 
 from __future__ import annotations
 
-from typing import Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import torch as th
 from torch import nn
@@ -153,20 +153,28 @@ class PixelWeights:
 
     def __init__(self, table: th.Tensor, channels: int) -> None:
         self.channels = channels
-        self.bits = min(8, 15 // channels)
-        if table.shape != (2 ** (self.bits * channels),):
-            raise ValueError(f"table must have shape ({2 ** (self.bits * channels)},) for {channels} channels, got {tuple(table.shape)}")
+        if table.shape != (self.n_colours(channels),):
+            raise ValueError(f"table must have shape ({self.n_colours(channels)},) for {channels} channels, got {tuple(table.shape)}")
         self.table = table
 
     @staticmethod
-    def colour_ids(x: th.Tensor) -> th.Tensor:
+    def bits(channels: int) -> int:
+        """Bits kept of each channel's byte."""
+        return min(8, 15 // channels)
+
+    @classmethod
+    def n_colours(cls, channels: int) -> int:
+        return 2 ** (cls.bits(channels) * channels)
+
+    @classmethod
+    def colour_ids(cls, x: th.Tensor) -> th.Tensor:
         """Colour id of every pixel of ``x`` (n, C, H, W) in [0, 1]: shape (n, H, W), int64."""
-        if x.numel() and (float(x.min()) < 0 or float(x.max()) > 1):
-            raise ValueError(
-                f"pixel weights need images in [0, 1] (the VAE's Bernoulli pixels), got values in [{float(x.min())}, {float(x.max())}]"
-            )
+        if x.numel():
+            low, high = (float(v) for v in th.aminmax(x))
+            if low < 0 or high > 1:
+                raise ValueError(f"pixel weights need images in [0, 1] (the VAE's Bernoulli pixels), got values in [{low}, {high}]")
         channels = x.shape[1]
-        bits = min(8, 15 // channels)
+        bits = cls.bits(channels)
         q = th.round(x.float() * 255).to(th.int64) >> (8 - bits)
         ids = q[:, 0]
         for c in range(1, channels):
@@ -187,7 +195,7 @@ class PixelWeights:
             channels = x.shape[1]
             ids = cls.colour_ids(x).flatten(1)
             per_image = w.to(th.float64)[:, None].expand_as(ids)
-            part = th.bincount(ids.flatten(), per_image.flatten(), minlength=2 ** (min(8, 15 // channels) * channels))
+            part = th.bincount(ids.flatten(), per_image.flatten(), minlength=cls.n_colours(channels))
             counts = part if counts is None else counts + part
         if counts is None or float(counts.sum()) <= 0:
             raise ValueError("PixelWeights.fit needs at least one image of positive weight")
@@ -197,6 +205,21 @@ class PixelWeights:
         raw = share ** -exponent
         table = raw / (share[seen] * raw[seen]).sum()
         return cls(table.float(), channels)
+
+    @classmethod
+    def fit_observations(
+        cls, raw: Any, sample_weights: Any, to_tensor: Callable[[Any], th.Tensor], exponent: float, chunk: int = 1024
+    ) -> "PixelWeights":
+        """:meth:`fit` over raw observations, turned into images ``chunk`` at a time by ``to_tensor`` (a VAE
+        update's data: its images in [0, 1] are never all in memory at once).
+
+        :param raw: the observations (indexable by slices)
+        :param sample_weights: their multiplicities, a numpy array of the same length
+        """
+        return cls.fit(
+            ((to_tensor(raw[i : i + chunk]), th.as_tensor(sample_weights[i : i + chunk])) for i in range(0, len(raw), chunk)),
+            exponent,
+        )
 
     def __call__(self, x: th.Tensor) -> th.Tensor:
         """Weights of the pixels of ``x`` (n, C, H, W) in [0, 1]: shape (n, H, W)."""

@@ -64,18 +64,26 @@ GOCU_TRIAL_PARAMS = (
     "goal_strategy",
     "revisit_decay",  # what a revisit within an episode pays
 )
+#: GoCu parameters sampled only when the configured policy takes images (a ``Cnn`` policy): the module refuses
+#: ``vae_pixel_weighting > 0`` with vector observations
+GOCU_IMAGE_TRIAL_PARAMS = ("vae_pixel_weighting",)
 #: policy_kwargs keys that no zoo sampler samples and that must survive tuning
 _EXTRACTOR_KEYS = ("features_extractor_class", "features_extractor_kwargs", "normalize_images", "share_features_extractor")
 
 
 # ---------------------------------------------------------------------------------------------- sampling
-def sample_gocu_trial_params(trial: optuna.Trial) -> dict[str, Any]:
-    """Raw GoCu parameters of a trial (names of :data:`GOCU_TRIAL_PARAMS`).
+def sample_gocu_trial_params(trial: optuna.Trial, images: bool = False) -> dict[str, Any]:
+    """Raw GoCu parameters of a trial (names of :data:`GOCU_TRIAL_PARAMS`, and with ``images`` those of
+    :data:`GOCU_IMAGE_TRIAL_PARAMS`).
 
     Ranges around the paper's values (K=50, sigma=0.25, delta=10, lambda=3, a=15, b=0.8, l=7, proportional):
     the paper reports lambda > 10 too sticky and lambda <= 2 overfitting, 10 < a < 30 good, b > 0.7 important.
+    ``vae_pixel_weighting`` (not in the paper; the default 0.5 for images) spans its whole range [0, 1].
+
+    :param trial: the Optuna trial
+    :param images: whether the observations are images (only then is ``vae_pixel_weighting`` sampled)
     """
-    return {
+    params: dict[str, Any] = {
         "n_goals": trial.suggest_categorical("n_goals", [10, 25, 50, 100]),
         "intrinsic_coef": trial.suggest_float("intrinsic_coef", 0.01, 1.0, log=True),
         "reward_scale": trial.suggest_categorical("reward_scale", [1.0, 5.0, 10.0, 20.0]),
@@ -86,6 +94,9 @@ def sample_gocu_trial_params(trial: optuna.Trial) -> dict[str, Any]:
         "goal_strategy": trial.suggest_categorical("goal_strategy", list(GOAL_STRATEGIES)),
         "revisit_decay": trial.suggest_categorical("revisit_decay", list(REVISIT_DECAYS)),
     }
+    if images:
+        params["vae_pixel_weighting"] = trial.suggest_float("vae_pixel_weighting", 0.0, 1.0)
+    return params
 
 
 def convert_gocu_trial_params(params: dict[str, Any], base: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -97,7 +108,7 @@ def convert_gocu_trial_params(params: dict[str, Any], base: dict[str, Any] | Non
     """
     base = base or {}
     curiosity = dict(_as_dict(base.get("curiosity_kwargs")))
-    sampled = {k: params[k] for k in GOCU_TRIAL_PARAMS if k in params and k != "intrinsic_coef"}
+    sampled = {k: params[k] for k in GOCU_TRIAL_PARAMS + GOCU_IMAGE_TRIAL_PARAMS if k in params and k != "intrinsic_coef"}
     curiosity.update(sampled)
     if "goal_buffer_size" in curiosity and "n_goals" in curiosity:
         curiosity["n_goals"] = min(int(curiosity["n_goals"]), int(curiosity["goal_buffer_size"]))
@@ -113,8 +124,8 @@ def convert_gocu_trial_params(params: dict[str, Any], base: dict[str, Any] | Non
 
 def sample_ppo_gocu_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
     """Optuna sampler of ``ppo_gocu``: rl-zoo3's PPO sampler (``rl_zoo3.hyperparams_opt.sample_ppo_params``)
-    for the PPO parameters, plus K, sigma, delta, lambda, a, b, l and the goal strategy
-    (:func:`sample_gocu_trial_params`). Configured ``curiosity_kwargs`` and ``policy_kwargs`` keys that are not
+    for the PPO parameters, plus K, sigma, delta, lambda, a, b, l, the goal strategy, ``revisit_decay`` and, when
+    the configured policy is a ``Cnn`` one, ``vae_pixel_weighting`` (:func:`sample_gocu_trial_params`). Configured ``curiosity_kwargs`` and ``policy_kwargs`` keys that are not
     sampled are kept (see the module docstring). The trial's user attribute ``worker`` is ``"host:pid"`` of the
     process that ran it."""
     from rl_zoo3.hyperparams_opt import sample_ppo_params
@@ -124,7 +135,7 @@ def sample_ppo_gocu_params(trial: optuna.Trial, n_actions: int, n_envs: int, add
     trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
     hyperparams = sample_ppo_params(trial, n_actions, n_envs, additional_args)
     hyperparams["policy_kwargs"] = _merge_policy_kwargs(base.get("policy_kwargs"), hyperparams.get("policy_kwargs"), keys=None)
-    hyperparams.update(convert_gocu_trial_params(sample_gocu_trial_params(trial), base))
+    hyperparams.update(convert_gocu_trial_params(sample_gocu_trial_params(trial, images=_takes_images(base)), base))
     return hyperparams
 
 
@@ -134,11 +145,18 @@ def convert_ppo_gocu_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     from rl_zoo3.hyperparams_opt import convert_onpolicy_params
 
     base = _configured_hyperparams()
-    ppo_params = {k: v for k, v in sampled_params.items() if k not in GOCU_TRIAL_PARAMS}
+    ppo_params = {k: v for k, v in sampled_params.items() if k not in GOCU_TRIAL_PARAMS + GOCU_IMAGE_TRIAL_PARAMS}
     hyperparams = convert_onpolicy_params(ppo_params)
     hyperparams["policy_kwargs"] = _merge_policy_kwargs(base.get("policy_kwargs"), hyperparams.get("policy_kwargs"), keys=None)
     hyperparams.update(convert_gocu_trial_params(sampled_params, base))
     return hyperparams
+
+
+def _takes_images(hyperparams: dict[str, Any]) -> bool:
+    """Whether the configured policy is an image one (``"CnnPolicy"``, or a policy class named ``...Cnn...``)."""
+    policy = hyperparams.get("policy")
+    name = policy if isinstance(policy, str) else getattr(policy, "__name__", "")
+    return "Cnn" in name
 
 
 def _keep_extractor(sampler: Any) -> Any:

@@ -24,6 +24,7 @@ import yaml
 
 from sb3_gocu import PAPER_N_ENVS, PAPER_PPO_KWARGS
 from sb3_gocu.zoo import (
+    GOCU_IMAGE_TRIAL_PARAMS,
     GOCU_TRIAL_PARAMS,
     convert_ppo_gocu_params,
     default_conf_file,
@@ -233,6 +234,34 @@ def test_sampler_merges_into_the_configured_settings():
     assert sample_ppo_gocu_params(study.ask(), 0, 2, {})["curiosity_kwargs"].keys() >= {"n_goals"}
 
 
+@pytest.mark.parametrize("policy, images", [("CnnPolicy", True), ("MlpPolicy", False), (None, False)])
+def test_sampler_draws_the_pixel_weighting_only_for_images(policy, images):
+    """``vae_pixel_weighting`` is sampled (over [0, 1]) when the configured policy takes images, and neither
+    sampled nor set otherwise (the module refuses a value above 0 with vector observations)."""
+    from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
+
+    register_zoo()
+    configured = {"curiosity_kwargs": {"pretrain_steps": 64}} | ({"policy": policy} if policy else {})
+    call = _FakeManagerCall(configured)
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=1))
+    drawn = []
+    for _ in range(8):
+        trial = study.ask()
+        params = call(HYPERPARAMS_SAMPLER["ppo_gocu"], trial)
+        assert ("vae_pixel_weighting" in trial.params) is images
+        assert ("vae_pixel_weighting" in params["curiosity_kwargs"]) is images
+        if images:
+            value = params["curiosity_kwargs"]["vae_pixel_weighting"]
+            assert 0.0 <= value <= 1.0 and value == trial.params["vae_pixel_weighting"]
+            drawn.append(value)
+        study.tell(trial, 0.0)
+        # the converter puts it back into curiosity_kwargs, not among the PPO arguments
+        converted = call(lambda *_: convert_ppo_gocu_params(study.trials[-1].params), trial)
+        assert converted == params and not set(GOCU_IMAGE_TRIAL_PARAMS) & converted.keys()
+    if images:
+        assert len(set(drawn)) == len(drawn), "a float drawn afresh for each trial"
+
+
 # ------------------------------------------------------------------------------------------ launchers
 def test_train_then_enjoy_ppo_gocu(gocu_run):
     from sb3_gocu import PPO_GoCu
@@ -335,6 +364,8 @@ def test_optimize_two_workers_share_one_journal_study(tmp_path):
     assert {p.pid for p in procs} == {int(w.rsplit(":", 1)[1]) for w in workers}
     for t in done:
         assert set(GOCU_TRIAL_PARAMS) <= t.params.keys(), "the ppo_gocu sampler drew the GoCu parameters"
+        # the zoo's manager hands the sampler the configured CnnPolicy: the image-only parameter is drawn too
+        assert set(GOCU_IMAGE_TRIAL_PARAMS) <= t.params.keys()
     # the two processes ran at the same time: some trials of different workers overlap
     spans = sorted((t.datetime_start, t.datetime_complete, t.user_attrs["worker"]) for t in done)
     assert any(a[2] != b[2] and b[0] < a[1] for i, a in enumerate(spans) for b in spans[i + 1 :])

@@ -38,6 +38,13 @@ fresh (seeded with ``seed + steps``): episodes in progress at the checkpoint are
 continuation is statistically, not bit-for-bit, the uninterrupted run. A checkpoint written with other
 settings (env, n_envs, PPO or curiosity settings) is refused; ``--restart`` discards it.
 
+Stopping once solved. With ``--stop-at-threshold`` a run ends at the first rollout end where it reaches the
+threshold as the summary counts it (below): PPO's update on that rollout is still made, the checkpoint is written
+at the start of the next rollout (where the training state is consistent) and marked ``stopped_at_threshold``,
+and the run stops at that rollout's first step (one vector step is taken and discarded; the CSV ends at the row
+that reached the threshold). A later command with the flag skips any run whose rows reach the threshold; one
+without it continues the run from its newest checkpoint to ``--timesteps``.
+
 The summary (printed and written to ``<out>/summary.md``) gives per algo the env steps to a mean return of
 ``--threshold`` (0.9: the first rollout end where the last-100 mean is >= 0.9, counted only once the window
 holds ``--min-window`` episodes) and the final success rate, as mean +- std over seeds, with the command,
@@ -142,9 +149,15 @@ class SampleEfficiencyCallback(BaseCallback):
         self._infos: list[list[dict]] = []
         self._t_rollout = time.perf_counter()
         self._steps_rollout = 0
+        self._stop = False
 
     def _on_rollout_start(self) -> None:
         run = self.run
+        if run.reached_at is not None:  # --stop-at-threshold: the update on that rollout is made; stop here
+            run.stopped_at_threshold = run.reached_at
+            run.checkpoint(self.model)
+            self._stop = True
+            return
         if self.num_timesteps - run.last_checkpoint >= run.checkpoint_freq:
             run.checkpoint(self.model)
         self._sum = self._sq = self._norm = 0.0
@@ -154,6 +167,8 @@ class SampleEfficiencyCallback(BaseCallback):
         self._steps_rollout = self.num_timesteps
 
     def _on_step(self) -> bool:
+        if self._stop:
+            return False
         infos = self.locals["infos"]
         for info in infos:
             ep = info.get("episode")
@@ -210,6 +225,10 @@ class Run:
         self.resumed_from: list[int] = []
         self.commands: list[str] = [command]
         self.done = False
+        #: with --stop-at-threshold: the rollout end where the run reached the threshold (this session)
+        self.reached_at: int | None = None
+        #: the step at which the run was stopped by --stop-at-threshold (kept in its checkpoints)
+        self.stopped_at_threshold: int | None = None
 
     # ------------------------------------------------------------ recording
     def add_episode(self, ret: float, phase: int | None = None) -> None:
@@ -244,6 +263,8 @@ class Run:
             "fps": fps,
         }
         self.rows.append(row)
+        if self.args.stop_at_threshold and steps_to_threshold([row], self.args.threshold, self.args.min_window) is not None:
+            self.reached_at = int(steps)
         # the live CSV (for watching a run); the checkpoint's copy is the one a resumption trusts
         atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
         n_rollouts = len(self.rows)
@@ -268,6 +289,7 @@ class Run:
             "rows": self.rows,
             "resumed_from": self.resumed_from,
             "done": self.done,
+            "stopped_at_threshold": self.stopped_at_threshold,
             "commands": self.commands,
             "machine": machine_line(self.args.threads),
         }
@@ -316,6 +338,7 @@ class Run:
             self.wall_before = float(state["wall_time_s"])
             self.resumed_from = list(state.get("resumed_from", []))
             self.done = bool(state.get("done", False))
+            self.stopped_at_threshold = state.get("stopped_at_threshold")
             self.commands = list(state.get("commands", [])) + ([self.command] if self.command not in state.get("commands", []) else [])
             self.last_checkpoint = steps
             return steps, model_path
@@ -339,6 +362,11 @@ class Run:
         restored = self._restore()
         if restored is not None:
             steps, model_path = restored
+            reached = steps_to_threshold(self.rows, self.args.threshold, self.args.min_window)
+            if self.args.stop_at_threshold and reached is not None:
+                print(f"[{self.name}] reached {self.args.threshold} at {reached} steps (checkpoint at {steps}): skipped")
+                atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
+                return
             if steps >= self.args.timesteps:
                 print(f"[{self.name}] already at {steps} >= {self.args.timesteps} steps: skipped")
                 atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
@@ -347,6 +375,7 @@ class Run:
             model = cls.load(model_path, env=self.make_env(self.seed + steps), device="cpu")
             self.resumed_from.append(steps)
             self.done = False
+            self.stopped_at_threshold = None
             atomic_write_bytes(self.csv_path, csv_bytes(self.rows))  # drop rows written after the checkpoint
             print(f"[{self.name}] resuming from {model_path} ({steps} steps, {self.episodes} episodes)", flush=True)
             remaining, reset = self.args.timesteps - steps, False
@@ -358,8 +387,12 @@ class Run:
             print(f"[{self.name}] new run: {self.args.env}, {self.args.timesteps} steps", flush=True)
         self.session_start = time.perf_counter()
         model.learn(remaining, callback=SampleEfficiencyCallback(self), reset_num_timesteps=reset)
-        self.done = True
-        self.checkpoint(model)
+        if self.stopped_at_threshold is None:
+            self.done = True
+            self.checkpoint(model)
+        else:  # the checkpoint of the rollout start is the run's last; the vector step after it is discarded
+            atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
+            print(f"[{self.name}] reached {self.args.threshold} at {self.stopped_at_threshold} steps: stopped", flush=True)
         model.env.close()
 
 
@@ -548,6 +581,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float, default=0.9, help="mean return for 'steps to threshold'")
     p.add_argument("--window", type=int, default=100, help="episodes in the return window")
     p.add_argument("--min-window", type=int, default=100, help="episodes the window must hold before the threshold counts")
+    p.add_argument(
+        "--stop-at-threshold", action="store_true",
+        help="end each run at the first rollout end where it reaches --threshold (checkpointed; a later command "
+        "without the flag continues it to --timesteps)",
+    )
     # GoCu settings
     p.add_argument("--goal-strategy", default=None, choices=list(GOAL_STRATEGIES), help="(default: the module's, proportional)")
     p.add_argument("--n-goals", type=int, default=None, help="K")

@@ -159,6 +159,36 @@ def test_resume_after_crash(se, tmp_path, monkeypatch):
     assert se.model_readable(good) and not se.model_readable(bad)
 
 
+def test_stop_at_threshold(se, tmp_path):
+    """--stop-at-threshold ends a PPO_GoCu run at the first rollout end that reaches the threshold (here 0.0 over
+    a window of 1 episode: the first row with an episode), checkpointed there; the flag then skips the run, and a
+    command without it continues the run to --timesteps."""
+    from sb3_gocu import PPO_GoCu
+
+    th.set_num_threads(1)
+    out = tmp_path / "stop"
+    args = tiny_args(out, 3072, "--algos", "ppo_gocu", "--threshold", "0.0", "--min-window", "1")
+    se.main(args + ["--stop-at-threshold"])
+    rows = read(out / "ppo_gocu_seed0.csv")
+    first = next(int(r["steps"]) for r in rows if int(r["window_episodes"]) >= 1)
+    assert int(rows[-1]["steps"]) == first < 3072, "the CSV ends at the row that reached the threshold"
+    ckpt = out / "checkpoints" / "ppo_gocu_seed0"
+    steps, state_path = se.list_checkpoints(ckpt)[-1]
+    state = json.loads(state_path.read_text())
+    assert steps == first and state["stopped_at_threshold"] == first and not state["done"]
+    assert PPO_GoCu.load(ckpt / f"model_{first}.zip", device="cpu").num_timesteps == first, "no step after the checkpoint"
+    # with the flag again: skipped, nothing rewritten
+    se.main(args + ["--stop-at-threshold"])
+    assert read(out / "ppo_gocu_seed0.csv") == rows and se.list_checkpoints(ckpt)[-1][0] == first
+    # without it: continued from that checkpoint to the budget
+    se.main(args)
+    continued = read(out / "ppo_gocu_seed0.csv")
+    assert continued[: len(rows)] == rows
+    assert [int(r["steps"]) for r in continued] == list(range(ROLLOUT, 3072 + 1, ROLLOUT))
+    state = json.loads((ckpt / "state_3072.json").read_text())
+    assert state["done"] and state["stopped_at_threshold"] is None and state["resumed_from"] == [first]
+
+
 def test_steps_to_threshold(se):
     rows = [
         {"steps": 100, "window_episodes": 50, "mean_return": 0.95},  # window not full yet: does not count

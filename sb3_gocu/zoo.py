@@ -125,8 +125,9 @@ def convert_gocu_trial_params(params: dict[str, Any], base: dict[str, Any] | Non
 def sample_ppo_gocu_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
     """Optuna sampler of ``ppo_gocu``: rl-zoo3's PPO sampler (``rl_zoo3.hyperparams_opt.sample_ppo_params``)
     for the PPO parameters, plus K, sigma, delta, lambda, a, b, l, the goal strategy, ``revisit_decay`` and, when
-    the configured policy is a ``Cnn`` one, ``vae_pixel_weighting`` (:func:`sample_gocu_trial_params`). Configured ``curiosity_kwargs`` and ``policy_kwargs`` keys that are not
-    sampled are kept (see the module docstring). The trial's user attribute ``worker`` is ``"host:pid"`` of the
+    the configured policy is a ``Cnn`` one, ``vae_pixel_weighting`` (:func:`sample_gocu_trial_params`).
+    Configured ``curiosity_kwargs`` and ``policy_kwargs`` keys that are not sampled are kept (see the module
+    docstring). The trial's user attribute ``worker`` is ``"host:pid"`` of the
     process that ran it."""
     from rl_zoo3.hyperparams_opt import sample_ppo_params
 

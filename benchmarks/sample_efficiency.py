@@ -227,7 +227,8 @@ class Run:
         self.done = False
         #: with --stop-at-threshold: the rollout end where the run reached the threshold (this session)
         self.reached_at: int | None = None
-        #: the step at which the run was stopped by --stop-at-threshold (kept in its checkpoints)
+        #: the step at which this session stopped the run by --stop-at-threshold (written into its checkpoint; a
+        #: resumption decides from the rows, so it does not read it back)
         self.stopped_at_threshold: int | None = None
 
     # ------------------------------------------------------------ recording
@@ -338,7 +339,6 @@ class Run:
             self.wall_before = float(state["wall_time_s"])
             self.resumed_from = list(state.get("resumed_from", []))
             self.done = bool(state.get("done", False))
-            self.stopped_at_threshold = state.get("stopped_at_threshold")
             self.commands = list(state.get("commands", [])) + ([self.command] if self.command not in state.get("commands", []) else [])
             self.last_checkpoint = steps
             return steps, model_path
@@ -375,7 +375,6 @@ class Run:
             model = cls.load(model_path, env=self.make_env(self.seed + steps), device="cpu")
             self.resumed_from.append(steps)
             self.done = False
-            self.stopped_at_threshold = None
             atomic_write_bytes(self.csv_path, csv_bytes(self.rows))  # drop rows written after the checkpoint
             print(f"[{self.name}] resuming from {model_path} ({steps} steps, {self.episodes} episodes)", flush=True)
             remaining, reset = self.args.timesteps - steps, False

@@ -67,6 +67,7 @@ GOCU_TRIAL_PARAMS = (
 #: GoCu parameters sampled only when the configured policy takes images (a ``Cnn`` policy): the module refuses
 #: ``vae_pixel_weighting > 0`` with vector observations
 GOCU_IMAGE_TRIAL_PARAMS = ("vae_pixel_weighting",)
+_ALL_GOCU_TRIAL_PARAMS = GOCU_TRIAL_PARAMS + GOCU_IMAGE_TRIAL_PARAMS
 #: policy_kwargs keys that no zoo sampler samples and that must survive tuning
 _EXTRACTOR_KEYS = ("features_extractor_class", "features_extractor_kwargs", "normalize_images", "share_features_extractor")
 
@@ -108,7 +109,7 @@ def convert_gocu_trial_params(params: dict[str, Any], base: dict[str, Any] | Non
     """
     base = base or {}
     curiosity = dict(_as_dict(base.get("curiosity_kwargs")))
-    sampled = {k: params[k] for k in GOCU_TRIAL_PARAMS + GOCU_IMAGE_TRIAL_PARAMS if k in params and k != "intrinsic_coef"}
+    sampled = {k: params[k] for k in _ALL_GOCU_TRIAL_PARAMS if k in params and k != "intrinsic_coef"}
     curiosity.update(sampled)
     if "goal_buffer_size" in curiosity and "n_goals" in curiosity:
         curiosity["n_goals"] = min(int(curiosity["n_goals"]), int(curiosity["goal_buffer_size"]))
@@ -146,7 +147,7 @@ def convert_ppo_gocu_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     from rl_zoo3.hyperparams_opt import convert_onpolicy_params
 
     base = _configured_hyperparams()
-    ppo_params = {k: v for k, v in sampled_params.items() if k not in GOCU_TRIAL_PARAMS + GOCU_IMAGE_TRIAL_PARAMS}
+    ppo_params = {k: v for k, v in sampled_params.items() if k not in _ALL_GOCU_TRIAL_PARAMS}
     hyperparams = convert_onpolicy_params(ppo_params)
     hyperparams["policy_kwargs"] = _merge_policy_kwargs(base.get("policy_kwargs"), hyperparams.get("policy_kwargs"), keys=None)
     hyperparams.update(convert_gocu_trial_params(sampled_params, base))

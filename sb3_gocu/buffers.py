@@ -16,6 +16,8 @@ import torch as th
 from stable_baselines3.common.buffers import DictRolloutBuffer, RolloutBuffer
 from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_gocu.curiosity.checks import is_number
+
 
 def compute_gae(
     rewards: np.ndarray,
@@ -61,10 +63,10 @@ class _TwoStreams:
     extrinsic_advantages: np.ndarray
 
     def _init_streams(self, intrinsic_gamma: float, intrinsic_coef: float, intrinsic_episodic: bool) -> None:
-        if not 0 <= intrinsic_gamma <= 1:
-            raise ValueError(f"intrinsic_gamma must be in [0, 1], got {intrinsic_gamma}")
-        if not intrinsic_coef >= 0:
-            raise ValueError(f"intrinsic_coef (sigma) must be >= 0, got {intrinsic_coef}")
+        if not (is_number(intrinsic_gamma) and 0 <= intrinsic_gamma <= 1):
+            raise ValueError(f"intrinsic_gamma must be in [0, 1], got {intrinsic_gamma!r}")
+        if not (is_number(intrinsic_coef) and intrinsic_coef >= 0):
+            raise ValueError(f"intrinsic_coef (sigma) must be a number >= 0, got {intrinsic_coef!r}")
         self.intrinsic_gamma = intrinsic_gamma
         self.intrinsic_coef = intrinsic_coef
         self.intrinsic_episodic = intrinsic_episodic

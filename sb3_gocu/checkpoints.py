@@ -43,6 +43,8 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
+from sb3_gocu.curiosity.checks import is_integer
+
 #: zip member holding the pickled env stack (not ``.pth``: SB3's loader ignores it)
 ENV_MEMBER = "gocu_env_state.pkl"
 _MODULE_ID = "gocu_curiosity_module"
@@ -388,9 +390,9 @@ class GoCuCheckpointCallback(BaseCallback):
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
-        if not (isinstance(save_freq, (int, np.integer)) and save_freq >= 1):
+        if not (is_integer(save_freq) and save_freq >= 1):
             raise ValueError(f"save_freq must be an integer >= 1, got {save_freq!r}")
-        if keep_last is not None and not (isinstance(keep_last, (int, np.integer)) and keep_last >= 1):
+        if keep_last is not None and not (is_integer(keep_last) and keep_last >= 1):
             raise ValueError(f"keep_last must be None or an integer >= 1, got {keep_last!r}")
         self.save_freq = int(save_freq)
         self.save_path = pathlib.Path(save_path)

@@ -44,6 +44,7 @@ from sb3_gocu.buffers import GoCuDictRolloutBuffer, GoCuRolloutBuffer
 from sb3_gocu.callbacks import GoCuCallback
 from sb3_gocu.checkpoints import GlobalRNGState, check_model_file, read_env_state, save_model
 from sb3_gocu.curiosity import GoalCuriosityModule
+from sb3_gocu.curiosity.checks import is_flag, is_integer, is_number
 from sb3_gocu.policies import GoCuActorCriticCnnPolicy, GoCuActorCriticPolicy, GoCuMultiInputActorCriticPolicy
 from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module, find_gocu_wrappers
 
@@ -128,17 +129,17 @@ class PPO_GoCu(PPO):
         spill_scoring: bool = True,
         **kwargs: Any,
     ) -> None:
-        if isinstance(scoring_lag, bool) or not isinstance(scoring_lag, (int, np.integer)) or scoring_lag < 1:
+        if not (is_integer(scoring_lag) and scoring_lag >= 1):
             raise ValueError(f"scoring_lag must be an int >= 1, got {scoring_lag!r}")
         self.scoring_lag = int(scoring_lag)
-        if not isinstance(spill_scoring, (bool, np.bool_)):
+        if not is_flag(spill_scoring):
             raise ValueError(f"spill_scoring must be True or False, got {spill_scoring!r}")
         self.spill_scoring = bool(spill_scoring)
-        if switch_interval is not None and not (isinstance(switch_interval, (int, float)) and 0 < switch_interval <= 1):
+        if switch_interval is not None and not (is_number(switch_interval) and 0 < switch_interval <= 1):
             raise ValueError(f"switch_interval must be None or a number of seconds in (0, 1], got {switch_interval!r}")
         self.switch_interval = switch_interval
-        if not intrinsic_coef >= 0:
-            raise ValueError(f"intrinsic_coef (sigma) must be >= 0, got {intrinsic_coef}")
+        if not (is_number(intrinsic_coef) and intrinsic_coef >= 0):
+            raise ValueError(f"intrinsic_coef (sigma) must be a number >= 0, got {intrinsic_coef!r}")
         self.intrinsic_coef = intrinsic_coef
         self.intrinsic_episodic = intrinsic_episodic
         self.async_scoring = async_scoring

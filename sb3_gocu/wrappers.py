@@ -24,6 +24,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
 from sb3_gocu.curiosity import GoalCuriosityModule
+from sb3_gocu.curiosity.checks import is_number
 
 MODES = ("sum", "separate")
 
@@ -57,8 +58,8 @@ class _RewardReport:
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-        if not intrinsic_coef >= 0:
-            raise ValueError(f"intrinsic_coef must be >= 0, got {intrinsic_coef}")
+        if not (is_number(intrinsic_coef) and intrinsic_coef >= 0):
+            raise ValueError(f"intrinsic_coef must be a number >= 0, got {intrinsic_coef!r}")
         self.module = _make_module(observation_space, module, curiosity_kwargs)
         self.mode = mode
         self.intrinsic_coef = intrinsic_coef

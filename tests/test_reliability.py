@@ -122,6 +122,17 @@ BOX = ChainEnv().observation_space
         (dict(predictor_train_freq=0), r"predictor_train_freq must be >= 1"),
         (dict(alpha=float("inf")), r"alpha must be a finite number"),
         (dict(revisit_decay="half"), r"revisit_decay must be one of \('none', 'inverse_sqrt', 'first_visit'\), got 'half'"),
+        # types: a bool is not an integer, a string not a number, a number not a flag
+        (dict(n_goals=True), r"n_goals must be an integer, got True"),
+        (dict(memory_size=np.float64(1e4)), r"memory_size must be an integer, got "),
+        (dict(reward_scale="10"), r"reward_scale must be a number, got '10'"),
+        (dict(label_threshold=None), r"label_threshold must be a number, got None"),
+        (dict(alpha=True), r"alpha must be a number, got True"),
+        (dict(vae_lr=[1e-3]), r"vae_lr must be a number, got \[0.001\]"),
+        (dict(soft_labels="no"), r"soft_labels must be True or False, got 'no'"),
+        (dict(predictor_dedupe=0), r"predictor_dedupe must be True or False, got 0"),
+        (dict(vae_dedupe=None), r"vae_dedupe must be True or False, got None"),
+        (dict(first_visit_distance=1), r"first_visit_distance must be True or False, got 1"),
     ],
 )
 def test_module_refuses_invalid_settings(kwargs, match):
@@ -135,17 +146,32 @@ def test_module_refuses_invalid_settings(kwargs, match):
 @pytest.mark.parametrize(
     "make, match",
     [
-        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef=-0.25), r"intrinsic_coef \(sigma\) must be >= 0"),
-        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef=float("nan")), r"intrinsic_coef \(sigma\) must be >= 0"),
+        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef=-0.25), r"intrinsic_coef \(sigma\) must be a number >= 0, got -0.25"),
+        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef=float("nan")), r"intrinsic_coef \(sigma\) must be a number >= 0"),
+        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef="0.25"), r"intrinsic_coef \(sigma\) must be a number >= 0, got '0.25'"),
+        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), switch_interval=True), r"switch_interval must be None or a number of seconds in \(0, 1\], got True"),
         (lambda: GoCuVecEnvWrapper(chain_venv(1), mode="add"), r"mode must be one of \('sum', 'separate'\), got 'add'"),
         (lambda: GoCuWrapper(ChainEnv(), mode="add"), r"mode must be one of \('sum', 'separate'\)"),
-        (lambda: GoCuVecEnvWrapper(chain_venv(1), intrinsic_coef=-1.0), r"intrinsic_coef must be >= 0"),
-        (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=-1.0), r"intrinsic_coef must be >= 0"),
+        (lambda: GoCuVecEnvWrapper(chain_venv(1), intrinsic_coef=-1.0), r"intrinsic_coef must be a number >= 0, got -1.0"),
+        (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=-1.0), r"intrinsic_coef must be a number >= 0"),
+        (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=None), r"intrinsic_coef must be a number >= 0, got None"),
+        (lambda: GoCuCheckpointCallback(True, "unused"), r"save_freq must be an integer >= 1, got True"),
+        (lambda: GoCuCheckpointCallback(128, "unused", keep_last=2.0), r"keep_last must be None or an integer >= 1, got 2.0"),
     ],
 )
 def test_algorithm_and_wrappers_refuse_invalid_settings(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_numpy_scalars_are_accepted_as_settings():
+    """A sweep or a config hands numpy scalars: they pass the type checks and mean their values."""
+    module = GoalCuriosityModule(BOX, **{**SMALL_CURIOSITY, "n_goals": np.int64(3), "reward_scale": np.float32(4.0),
+                                        "soft_labels": np.bool_(False), "vae_holdout": np.float64(0.2)})
+    assert (module.n_goals, module.reward_scale, module.soft_labels, module.vae_holdout) == (3, 4.0, False, 0.2)
+    model = PPO_GoCu("MlpPolicy", chain_venv(1), n_steps=8, batch_size=8, intrinsic_coef=np.float64(0.5), scoring_lag=np.int64(2),
+                     curiosity_kwargs=SMALL_CURIOSITY)
+    assert (model.intrinsic_coef, model.scoring_lag) == (0.5, 2)
 
 
 @pytest.mark.parametrize(

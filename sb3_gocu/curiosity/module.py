@@ -38,6 +38,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
+from sb3_gocu.curiosity.checks import check as _check, is_flag, is_integer, is_number
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, PixelWeights, sharded_vae_gradients, vae_loss
 from sb3_gocu.curiosity.observations import ObservationAdapter
@@ -59,10 +60,6 @@ DTYPES = {"float32": th.float32, "bfloat16": th.bfloat16}
 #: ``vae_pixel_weighting`` of image observations when it is None (the default); measured on DoorKey-8x8 (README, Results)
 DEFAULT_PIXEL_WEIGHTING = 0.5
 
-
-def _check(condition: bool, message: str) -> None:
-    if not condition:
-        raise ValueError(message)
 
 
 def _keys_to_tensor(table: dict[bytes, Any]) -> th.Tensor:
@@ -437,7 +434,20 @@ class GoalCuriosityModule:
             ("vae_train_freq", vae_train_freq), ("pretrain_steps", pretrain_steps), ("memory_size", memory_size),
             ("episode_memory", episode_memory), ("vae_patience", vae_patience), ("vae_shards", vae_shards),
         ):
-            _check(isinstance(value, (int, np.integer)) and not isinstance(value, bool), f"{name} must be an integer, got {value!r}")
+            _check(is_integer(value), f"{name} must be an integer, got {value!r}")
+        for name, value in (
+            ("goal_novelty", goal_novelty), ("alpha", alpha), ("reward_scale", reward_scale), ("intrinsic_gamma", intrinsic_gamma),
+            ("prior_weight", prior_weight), ("distance_weight", distance_weight), ("label_threshold", label_threshold),
+            ("label_slope", label_slope), ("predictor_lr", predictor_lr), ("vae_lr", vae_lr), ("vae_beta", vae_beta),
+        ):
+            _check(is_number(value), f"{name} must be a number, got {value!r}")
+        for name, value in (
+            ("soft_labels", soft_labels), ("first_visit_distance", first_visit_distance), ("predictor_dedupe", predictor_dedupe),
+            ("vae_dedupe", vae_dedupe), ("train_in_background", train_in_background), ("overlap_ppo_update", overlap_ppo_update),
+            ("refit_predictor_after_vae", refit_predictor_after_vae), ("record_start_states", record_start_states),
+            ("split_updates", split_updates), ("queue_during_update", queue_during_update),
+        ):
+            _check(is_flag(value), f"{name} must be True or False, got {value!r}")
         _check(goal_buffer_size >= 1, f"goal_buffer_size must be >= 1, got {goal_buffer_size}")
         _check(1 <= n_goals <= goal_buffer_size, f"n_goals (K) must be in [1, goal_buffer_size={goal_buffer_size}], got {n_goals}")
         _check(new_goals_per_episode >= 0, f"new_goals_per_episode (l) must be >= 0, got {new_goals_per_episode}")
@@ -471,27 +481,23 @@ class GoalCuriosityModule:
             _check(value >= 0, f"{name} must be >= 0, got {value}")
         _check(
             vae_pretrain_patience is None
-            or (isinstance(vae_pretrain_patience, (int, np.integer)) and not isinstance(vae_pretrain_patience, bool) and vae_pretrain_patience >= 0),
+            or (is_integer(vae_pretrain_patience) and vae_pretrain_patience >= 0),
             f"vae_pretrain_patience must be None or an integer >= 0, got {vae_pretrain_patience!r}",
         )
         for name, value in (("predictor_lr", predictor_lr), ("vae_lr", vae_lr)):
             _check(value > 0, f"{name} must be > 0, got {value}")
         _check(vae_beta >= 0, f"vae_beta must be >= 0, got {vae_beta}")
         _check(
-            vae_pixel_weighting is None
-            or (isinstance(vae_pixel_weighting, (int, float, np.floating, np.integer)) and not isinstance(vae_pixel_weighting, bool)
-                and 0 <= vae_pixel_weighting <= 1),
+            vae_pixel_weighting is None or (is_number(vae_pixel_weighting) and 0 <= vae_pixel_weighting <= 1),
             f"vae_pixel_weighting must be None or in [0, 1], got {vae_pixel_weighting!r}",
         )
-        for name, value in (("train_in_background", train_in_background), ("overlap_ppo_update", overlap_ppo_update)):
-            _check(isinstance(value, (bool, np.bool_)), f"{name} must be True or False, got {value!r}")
         _check(
-            isinstance(vae_holdout, (int, float, np.floating)) and not isinstance(vae_holdout, bool) and 0 < vae_holdout <= 0.5,
+            is_number(vae_holdout) and 0 < vae_holdout <= 0.5,
             f"vae_holdout must be in (0, 0.5], got {vae_holdout!r}",
         )
 
         _check(
-            update_threads is None or (isinstance(update_threads, (int, np.integer)) and not isinstance(update_threads, bool) and update_threads >= 1),
+            update_threads is None or (is_integer(update_threads) and update_threads >= 1),
             f"update_threads must be None or an int >= 1, got {update_threads!r}",
         )
         _check(1 <= vae_shards <= vae_batch_size, f"vae_shards must be in [1, vae_batch_size={vae_batch_size}], got {vae_shards}")
@@ -527,17 +533,13 @@ class GoalCuriosityModule:
         self.vae_pretrain_patience = vae_patience if vae_pretrain_patience is None else int(vae_pretrain_patience)
         self.vae_holdout = float(vae_holdout)
         self.vae_shards = int(vae_shards)
-        _check(isinstance(refit_predictor_after_vae, (bool, np.bool_)), f"refit_predictor_after_vae must be True or False, got {refit_predictor_after_vae!r}")
         self.refit_predictor_after_vae = bool(refit_predictor_after_vae)
-        _check(isinstance(record_start_states, (bool, np.bool_)), f"record_start_states must be True or False, got {record_start_states!r}")
         self.record_start_states = bool(record_start_states)
         _check(scoring_dtype in DTYPES, f"scoring_dtype must be one of {tuple(DTYPES)}, got {scoring_dtype!r}")
         self.scoring_dtype = scoring_dtype
         _check(train_dtype in DTYPES, f"train_dtype must be one of {tuple(DTYPES)}, got {train_dtype!r}")
         self.train_dtype = train_dtype
-        _check(isinstance(split_updates, (bool, np.bool_)), f"split_updates must be True or False, got {split_updates!r}")
         self.split_updates = bool(split_updates)
-        _check(isinstance(queue_during_update, (bool, np.bool_)), f"queue_during_update must be True or False, got {queue_during_update!r}")
         self.queue_during_update = bool(queue_during_update)
         self._split = SplitWork()
         self._shard_pool: ThreadPoolExecutor | None = None
@@ -545,7 +547,7 @@ class GoalCuriosityModule:
         self.pretrain_steps = pretrain_steps
         self.episode_memory = episode_memory
         self.device = th.device(device)
-        _check(scoring_process is None or isinstance(scoring_process, (bool, np.bool_)), f"scoring_process must be True, False or None, got {scoring_process!r}")
+        _check(scoring_process is None or is_flag(scoring_process), f"scoring_process must be True, False or None, got {scoring_process!r}")
         _check(not scoring_process or self.device.type == "cpu", f"scoring_process needs device='cpu', got {self.device}")
         _check(not scoring_process or os.name == "posix", f"scoring_process needs a POSIX system (it passes pipes to a child), got {os.name!r}")
         self.scoring_process = bool(self.device.type == "cpu" and os.name == "posix" if scoring_process is None else scoring_process)

@@ -1,0 +1,33 @@
+"""Type tests of settings, shared by the curiosity module and the adapters around it.
+
+A bare ``isinstance`` gets two cases wrong: ``bool`` is a subclass of ``int`` (so ``True`` would pass as 1), and
+numpy's scalars are not Python's (so ``np.int64(3)`` from a config or a sweep would be refused). No
+Stable-Baselines3 import.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+def is_integer(value: Any) -> bool:
+    """Whether ``value`` is an integer (Python's or numpy's), and not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def is_number(value: Any) -> bool:
+    """Whether ``value`` is a real number (an integer or a float, Python's or numpy's), and not a bool."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def is_flag(value: Any) -> bool:
+    """Whether ``value`` is True or False (Python's or numpy's bool; not 0, 1 or a string)."""
+    return isinstance(value, (bool, np.bool_))
+
+
+def check(condition: bool, message: str) -> None:
+    """Raise ``ValueError(message)`` unless ``condition``."""
+    if not condition:
+        raise ValueError(message)

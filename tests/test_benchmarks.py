@@ -418,3 +418,30 @@ def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_ti
         assert r["pretrain_s"] > 0 and r["scoring_in_worker_s"] > 0 and r["predictor_training_s"] > 0
     saved = json.loads((tmp_path / "t.json").read_text())
     assert saved["ppo_gocu"]["weights_sha256"] == gocu["weights_sha256"] and saved["command"][1:3] == ["--env", "GoCu/DoorKey-5x5-v0"]
+
+
+def test_update_timeline_rows():
+    """fit_rows on a hand-made timeline: rollouts of 1 s, PPO updates of 0.5 s; a predictor fit that outlasts its PPO
+    update makes the next rollout 0.7 s longer; a job of a predictor and a VAE fit (the VAE's starting after that
+    PPO update ended) belongs to that PPO update and charges its 2 s to the VAE, the job's last fit; the no-op
+    take-into-use calls at rollout ends do not split a job; the pretraining's fit has no rollout."""
+    timeline = load_script("update_timeline", "benchmarks/update_timeline.py")
+    events = [
+        ("vae", 0.0, 3.0),  # pretraining, in place
+        ("rollout", 3.0, 4.0), ("taken_into_use", 4.0, 4.0), ("ppo_update", 4.0, 4.5),
+        ("predictor", 4.0, 5.8), ("rollout", 4.5, 6.2), ("taken_into_use", 5.5, 5.9),
+        ("taken_into_use", 6.2, 6.2), ("ppo_update", 6.2, 6.7),
+        ("rollout", 6.7, 7.7), ("taken_into_use", 7.7, 7.7), ("ppo_update", 7.7, 8.2),
+        ("predictor", 7.7, 8.9), ("vae", 8.9, 11.0), ("rollout", 8.2, 11.2), ("taken_into_use", 9.2, 11.1),
+        ("taken_into_use", 11.2, 11.2), ("ppo_update", 11.2, 11.7), ("rollout", 11.7, 12.7),
+    ]
+    rows, waited, plain = timeline.fit_rows(events)
+    assert plain == 1.0  # median of 1.0, 1.7, 1.0, 3.0, 1.0
+    by_start = {(r[0], r[1]): r for r in rows}
+    assert by_start[("vae", 0.0)][3:] == [None, None, None, None]
+    pred = by_start[("predictor", 4.0)]
+    assert pred[3:6] == [4.5, 5.9, 6.2] and pred[6] == pytest.approx(0.7)
+    assert by_start[("predictor", 7.7)][3:7] == [8.2, 11.1, 11.2, None]  # its job's extra time goes to the VAE fit
+    vae = by_start[("vae", 8.9)]
+    assert vae[3:6] == [8.2, 11.1, 11.2] and vae[6] == pytest.approx(2.0)
+    assert waited == pytest.approx({"predictor": 0.7, "vae": 2.0})

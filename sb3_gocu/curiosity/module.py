@@ -61,7 +61,6 @@ DTYPES = {"float32": th.float32, "bfloat16": th.bfloat16}
 DEFAULT_PIXEL_WEIGHTING = 0.5
 
 
-
 def _keys_to_tensor(table: dict[bytes, Any]) -> th.Tensor:
     """The (equal-length) byte keys of a memo as one uint8 tensor, a row per key."""
     return th.from_numpy(np.frombuffer(b"".join(table), dtype=np.uint8).reshape(len(table), -1 if table else 0).copy())

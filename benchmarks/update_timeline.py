@@ -16,6 +16,7 @@ Paper PPO settings (16 envs, n_steps 128, batch 256, 4 epochs) and the module's 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -61,9 +62,22 @@ def first_after(events: list[tuple[str, float, float]], label: str, t: float, ke
     return min(times) if times else None
 
 
-def fit_rows(events: list[tuple[str, float, float]]) -> tuple[list[list[Any]], dict[str, float], float]:
-    """One row per fit: [label, start, end, end of the PPO update its job overlaps, when the job was taken into use,
-    end of the rollout after that PPO update, how much longer than the median rollout that rollout took].
+@dataclasses.dataclass
+class FitRow:
+    """One VAE or predictor fit and what followed it (times in s from the recorder's start; None: does not apply,
+    as for the pretraining's fit, which runs in place before the first rollout)."""
+
+    label: str  #: "vae" or "predictor"
+    start: float
+    end: float
+    ppo_end: float | None = None  #: end of the PPO update the fit's job overlaps
+    used: float | None = None  #: when the job's networks were taken into use
+    rollout_end: float | None = None  #: end of the rollout after that PPO update
+    waited: float | None = None  #: how much longer than the median rollout that rollout took (the job's last fit only)
+
+
+def fit_rows(events: list[tuple[str, float, float]]) -> tuple[list[FitRow], dict[str, float], float]:
+    """One :class:`FitRow` per fit, in order of start.
 
     A job is the fits due at one rollout's end (a predictor fit, a VAE fit, or both, run back to back): a fit
     starts a new job unless it follows the previous fit with no ``taken_into_use`` ending between them. The job's
@@ -76,17 +90,17 @@ def fit_rows(events: list[tuple[str, float, float]]) -> tuple[list[list[Any]], d
     plain = float(np.median([e[2] - e[1] for e in rollouts]))
     first_rollout = min(e[1] for e in rollouts)
     used_ends = [e[2] for e in events if e[0] == "taken_into_use"]
-    rows: list[list[Any]] = []
-    jobs: list[list[list[Any]]] = []
+    rows: list[FitRow] = []
+    jobs: list[list[FitRow]] = []
     for label, start, end in sorted((e for e in events if e[0] in ("predictor", "vae")), key=lambda e: e[1]):
         if start < first_rollout:  # the pretraining's fit, in place before the first rollout
-            rows.append([label, start, end, None, None, None, None])
+            rows.append(FitRow(label, start, end))
             continue
-        same_job = bool(jobs) and not any(jobs[-1][-1][2] < t < start for t in used_ends)
-        job_start = jobs[-1][0][1] if same_job else start
+        same_job = bool(jobs) and not any(jobs[-1][-1].end < t < start for t in used_ends)
+        job_start = jobs[-1][0].start if same_job else start
         ppo_end = first_after(events, "ppo_update", job_start)
         roll_end = None if ppo_end is None else first_after(events, "rollout", ppo_end)
-        row = [label, start, end, ppo_end, None, roll_end, None]
+        row = FitRow(label, start, end, ppo_end=ppo_end, rollout_end=roll_end)
         rows.append(row)
         if same_job:
             jobs[-1].append(row)
@@ -94,13 +108,13 @@ def fit_rows(events: list[tuple[str, float, float]]) -> tuple[list[list[Any]], d
             jobs.append([row])
     total_waited = {"predictor": 0.0, "vae": 0.0}
     for job in jobs:
-        used = first_after(events, "taken_into_use", max(r[2] for r in job))
+        used = first_after(events, "taken_into_use", max(r.end for r in job))
         for r in job:
-            r[4] = used
-        last = max(job, key=lambda r: r[2])
-        if last[3] is not None and last[5] is not None:
-            last[6] = (last[5] - last[3]) - plain
-            total_waited[last[0]] += last[6]
+            r.used = used
+        last = max(job, key=lambda r: r.end)
+        if last.ppo_end is not None and last.rollout_end is not None:
+            last.waited = (last.rollout_end - last.ppo_end) - plain
+            total_waited[last.label] += last.waited
     return rows, total_waited, plain
 
 
@@ -140,10 +154,10 @@ def main() -> None:
     rows, total_waited, plain = fit_rows(events)
     print(f"median rollout {plain:.2f} s, median PPO update {np.median([e[2] - e[1] for e in events if e[0] == 'ppo_update']):.2f} s")
     print(f"{'fit':<10} {'start':>7} {'fit':>6} {'PPO update ends':>16} {'taken into use':>15} {'next rollout ends':>18} {'waited':>7}")
-    for label, start, end, ppo_end, used, roll_end, waited in rows:
-        rel = lambda t: "" if t is None else f"{t - start:.2f}"  # noqa: E731
-        print(f"{label:<10} {start:7.1f} {end - start:6.2f} {rel(ppo_end):>16} {rel(used):>15} {rel(roll_end):>18} "
-              f"{'' if waited is None else f'{waited:.2f}':>7}")
+    for r in rows:
+        rel = lambda t: "" if t is None else f"{t - r.start:.2f}"  # noqa: E731
+        print(f"{r.label:<10} {r.start:7.1f} {r.end - r.start:6.2f} {rel(r.ppo_end):>16} {rel(r.used):>15} "
+              f"{rel(r.rollout_end):>18} {'' if r.waited is None else f'{r.waited:.2f}':>7}")
     fits = {k: [e[2] - e[1] for e in events if e[0] == k] for k in ("predictor", "vae")}
     print(f"\npredictor fits: {len(fits['predictor'])}, {sum(fits['predictor']):.1f} s in all; the rollouts after them ran "
           f"{total_waited['predictor']:.1f} s over a median rollout")

@@ -1,6 +1,7 @@
 import importlib.util
 import os
 import pathlib
+import sys
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -98,5 +99,6 @@ def load_script(name: str, relpath: str):
     """Import a script of the repository (benchmarks/, examples/) as a module."""
     spec = importlib.util.spec_from_file_location(name, ROOT / relpath)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # as an import does (dataclasses look their module up there)
     spec.loader.exec_module(module)
     return module

@@ -437,11 +437,10 @@ def test_update_timeline_rows():
     ]
     rows, waited, plain = timeline.fit_rows(events)
     assert plain == 1.0  # median of 1.0, 1.7, 1.0, 3.0, 1.0
-    by_start = {(r[0], r[1]): r for r in rows}
-    assert by_start[("vae", 0.0)][3:] == [None, None, None, None]
-    pred = by_start[("predictor", 4.0)]
-    assert pred[3:6] == [4.5, 5.9, 6.2] and pred[6] == pytest.approx(0.7)
-    assert by_start[("predictor", 7.7)][3:7] == [8.2, 11.1, 11.2, None]  # its job's extra time goes to the VAE fit
-    vae = by_start[("vae", 8.9)]
-    assert vae[3:6] == [8.2, 11.1, 11.2] and vae[6] == pytest.approx(2.0)
+    assert [(r.label, r.start, r.end) for r in rows] == [("vae", 0.0, 3.0), ("predictor", 4.0, 5.8), ("predictor", 7.7, 8.9), ("vae", 8.9, 11.0)]
+    pretrain, pred, pred2, vae = rows
+    assert (pretrain.ppo_end, pretrain.used, pretrain.rollout_end, pretrain.waited) == (None, None, None, None)
+    assert (pred.ppo_end, pred.used, pred.rollout_end) == (4.5, 5.9, 6.2) and pred.waited == pytest.approx(0.7)
+    assert (pred2.ppo_end, pred2.used, pred2.rollout_end, pred2.waited) == (8.2, 11.1, 11.2, None)  # its job's extra time goes to the VAE fit
+    assert (vae.ppo_end, vae.used, vae.rollout_end) == (8.2, 11.1, 11.2) and vae.waited == pytest.approx(2.0)
     assert waited == pytest.approx({"predictor": 0.7, "vae": 2.0})

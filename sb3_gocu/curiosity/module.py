@@ -567,8 +567,9 @@ class GoalCuriosityModule:
                 th.manual_seed(init_seed)
             self.vae = vae_cls(self.adapter.input_shape, embed_dim=embed_dim, latent_dim=latent_dim).to(self.device)
             self.predictor = MasteryPredictor(embed_dim, predictor_hidden).to(self.device)
-        self.vae_optimizer = th.optim.Adam(self.vae.parameters(), lr=vae_lr)
-        self.predictor_optimizer = th.optim.Adam(self.predictor.parameters(), lr=predictor_lr)
+        # foreach: Adam's multi-tensor step, the same values as its per-parameter loop (tested) in fewer calls
+        self.vae_optimizer = th.optim.Adam(self.vae.parameters(), lr=vae_lr, foreach=True)
+        self.predictor_optimizer = th.optim.Adam(self.predictor.parameters(), lr=predictor_lr, foreach=True)
         self.vae.eval()
         self.predictor.eval()
 
@@ -1770,10 +1771,12 @@ class GoalCuriosityModule:
         self.vae.load_state_dict(state["vae"], strict=strict)
         self._phi_cache.clear()
         self.predictor.load_state_dict(state["predictor"], strict=strict)
-        if "vae_optimizer" in state:
-            self.vae_optimizer.load_state_dict(state["vae_optimizer"])
-        if "predictor_optimizer" in state:
-            self.predictor_optimizer.load_state_dict(state["predictor_optimizer"])
+        for name in ("vae_optimizer", "predictor_optimizer"):
+            if name in state:
+                optimizer = getattr(self, name)
+                optimizer.load_state_dict(state[name])
+                for group in optimizer.param_groups:  # a state saved before foreach was on keeps the multi-tensor step
+                    group["foreach"] = True
         self.vae.eval()
         self._sync_encoder()
         self.predictor.eval()

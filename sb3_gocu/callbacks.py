@@ -105,5 +105,5 @@ class GoCuCallback(BaseCallback):
 
     def _on_training_end(self) -> None:
         assert self.module is not None
-        self.module.finish_background_update()  # no update thread outlives learn()
+        self.module.finish_updates()  # no update thread outlives learn()
         self.module.recording = False

@@ -309,6 +309,15 @@ class GoalCuriosityModule:
         out of the next :meth:`maybe_train` (logged one rollout later). Measured on DoorKey-8x8 (README,
         Results): the rollouts waited 23.9 s for the updates per 100k steps, against 34.9 s in place (same run,
         1 torch thread). False: run the update in place
+    :param predictor_lead: (with ``overlap_ppo_update``, without ``train_in_background`` or
+        ``refit_predictor_after_vae``) start each predictor update this many rollouts before it is due, on the pairs
+        drawn then, and run it only beside PPO's updates (paused while a rollout runs, so it competes with neither
+        the scoring nor the env stepping); it is taken into use when due, as without a lead. So the update's
+        compute is spread over the second core's idle time beside ``predictor_lead`` + 1 PPO updates instead of
+        one, at the cost of pairs ``predictor_lead`` rollouts older (another run for each seed). Not when a VAE
+        update falls due first (the predictor then runs as without a lead). 0 (default): no lead. Saving the
+        module (``state_dict``), :meth:`train_predictor`, :meth:`train_vae` and :meth:`finish_updates` take a lead
+        update into use at once
     :param update_threads: torch threads of a VAE or predictor update (pretraining's included). ``None``
         (default): the caller's ``torch.get_num_threads()``. An update that training waits for (in place, or
         overlapped with PPO's update and then waited for) leaves the caller's share of the machine and the
@@ -413,6 +422,7 @@ class GoalCuriosityModule:
         image_channels: int | None = None,
         train_in_background: bool = False,
         overlap_ppo_update: bool = True,
+        predictor_lead: int = 0,
         scoring_process: bool | None = None,
         update_threads: int | None = None,
         vae_shards: int = 1,
@@ -432,6 +442,7 @@ class GoalCuriosityModule:
             ("latent_dim", latent_dim), ("vae_batch_size", vae_batch_size), ("vae_epochs", vae_epochs),
             ("vae_train_freq", vae_train_freq), ("pretrain_steps", pretrain_steps), ("memory_size", memory_size),
             ("episode_memory", episode_memory), ("vae_patience", vae_patience), ("vae_shards", vae_shards),
+            ("predictor_lead", predictor_lead),
         ):
             _check(is_integer(value), f"{name} must be an integer, got {value!r}")
         for name, value in (
@@ -476,6 +487,7 @@ class GoalCuriosityModule:
             _check(value >= 1, f"{name} must be >= 1, got {value}")
         for name, value in (
             ("predictor_epochs", predictor_epochs), ("vae_epochs", vae_epochs), ("pretrain_steps", pretrain_steps), ("vae_patience", vae_patience),
+            ("predictor_lead", predictor_lead),
         ):
             _check(value >= 0, f"{name} must be >= 0, got {value}")
         _check(
@@ -500,6 +512,11 @@ class GoalCuriosityModule:
             f"update_threads must be None or an int >= 1, got {update_threads!r}",
         )
         _check(1 <= vae_shards <= vae_batch_size, f"vae_shards must be in [1, vae_batch_size={vae_batch_size}], got {vae_shards}")
+        _check(
+            not predictor_lead or (overlap_ppo_update and not train_in_background and not refit_predictor_after_vae),
+            f"predictor_lead={predictor_lead} needs overlap_ppo_update=True, train_in_background=False and "
+            f"refit_predictor_after_vae=False, got {overlap_ppo_update}, {train_in_background} and {refit_predictor_after_vae}",
+        )
 
         self.observation_space = observation_space
         self.adapter = ObservationAdapter(observation_space, obs_key=obs_key, image_channels=image_channels)
@@ -606,6 +623,10 @@ class GoalCuriosityModule:
         self._job_until_next_use = False  # the running update is taken into use before the module is next used
         self._job_finished = threading.Event()  # set when the running update's fits end (split_updates' helper stops)
         self._unreported: dict[str, float] = {}  # statistics of updates taken into use outside maybe_train
+        self.predictor_lead = int(predictor_lead)
+        self._lead: dict[str, Any] | None = None  # a predictor update started before it is due (predictor_lead)
+        self._lead_gate = threading.Event()  # set while the lead update may run: between a rollout's end and the next
+        self._recorded_at_last_train = 0  # n_recorded_steps at the last maybe_train (a rollout's recorded steps)
         self._queue: deque[ScoringTicket] = deque()  # steps submitted while an overlapped update runs (queue_during_update)
         self._holding_queue = False  # while an update is taken into use, or the queue is being submitted
         self.queued_steps = 0  # steps that waited in the queue (queue_during_update)
@@ -1386,7 +1407,7 @@ class GoalCuriosityModule:
         :param patience: early stopping's patience (default ``vae_patience``; 0: all ``epochs``)
         :return: statistics of the update
         """
-        self.finish_background_update()
+        self.finish_updates()
         job = self._prepare_vae_update(epochs, patience)
         return {} if job is None else self._finish_vae(self._helped(functools.partial(self._fit_vae_job, job)))
 
@@ -1396,6 +1417,7 @@ class GoalCuriosityModule:
         out = self.train_vae(patience=self.vae_pretrain_patience)
         self.pretrained = True
         self.last_predictor_update = self.n_recorded_steps  # P_m counts from the first rollout
+        self._recorded_at_last_train = self.n_recorded_steps
         return out
 
     # predictor update: prepare (caller's thread) -> fit (any thread) -> finish (caller's thread)
@@ -1443,6 +1465,7 @@ class GoalCuriosityModule:
         drawn: int | None = None,
         on_epoch: Callable[[int], None] | None = None,
         threads: int | None = None,
+        before_step: Callable[[], Any] | None = None,
     ) -> dict[str, Any]:
         """Label the pairs (eq 15-16) and fit the predictor to them for ``predictor_epochs`` epochs.
 
@@ -1450,6 +1473,7 @@ class GoalCuriosityModule:
         :param drawn: pairs drawn before de-duplication (for the statistics)
         :param on_epoch: called with the epoch number after each epoch (the predictor is in train mode), for probes
         :param threads: torch threads of the fit (None: the calling thread's)
+        :param before_step: called before each minibatch (a lead update waits there while a rollout runs)
         """
         with torch_threads(threads), splitting(self._split_work()):
             t0 = time.perf_counter()
@@ -1466,6 +1490,8 @@ class GoalCuriosityModule:
                     idx = order[start : start + self.predictor_batch_size]
                     if len(idx) < 2:  # batch norm needs two samples
                         continue
+                    if before_step is not None:
+                        before_step()
                     with self._train_autocast():
                         logits = self.predictor(phi_s[idx], phi_g[idx])
                     logp = th.log_softmax(logits.float(), dim=-1)
@@ -1509,7 +1535,7 @@ class GoalCuriosityModule:
 
         :return: statistics of the update (loss, accuracy against the labels, fraction labelled mastered)
         """
-        self.finish_background_update()
+        self.finish_updates()
         job = self._prepare_predictor()
         return {} if job is None else self._finish_predictor(self._helped(functools.partial(self._fit_predictor, **job)))
 
@@ -1526,12 +1552,20 @@ class GoalCuriosityModule:
         self._unreported = {}
         out.update(self.finish_background_update())
         out["goals_added"] = float(self.add_finished_episode_goals())
+        rollout = self.n_recorded_steps - self._recorded_at_last_train  # recorded steps of the rollout just ended
+        self._recorded_at_last_train = self.n_recorded_steps
         # predictor first: a VAE update makes the stored embeddings (the predictor's pairs) stale; with
         # refit_predictor_after_vae the VAE's job retrains the predictor after it instead
         jobs: list[tuple[str, dict[str, Any]]] = []
         vae_due = self.n_recorded_steps - self.last_vae_update >= self.vae_train_freq
         refit = vae_due and self.refit_predictor_after_vae
-        if not refit and self.n_recorded_steps - self.last_predictor_update >= self.predictor_train_freq:
+        predictor_due = not refit and self.n_recorded_steps - self.last_predictor_update >= self.predictor_train_freq
+        if predictor_due and self._lead is not None:  # started predictor_lead rollouts ago: now it may run on
+            jobs.append(("lead", self._lead))
+            self._lead = None
+            self._lead_gate.set()
+            self.last_predictor_update = self.n_recorded_steps
+        elif predictor_due:
             job = self._prepare_predictor()
             if job is not None:
                 jobs.append(("predictor", job))
@@ -1539,6 +1573,10 @@ class GoalCuriosityModule:
             job = self._prepare_vae_update(None)
             if job is not None:
                 jobs.append(("vae", job))
+        if self.predictor_lead and self._lead is None and not (predictor_due or vae_due) and rollout > 0:
+            self._maybe_start_lead(self.n_recorded_steps + self.predictor_lead * rollout)
+        if self._lead is not None:
+            self._lead_gate.set()  # it runs beside PPO's update, until the next rollout uses the module
         if not jobs:
             return out
         if not (self.train_in_background or self.overlap_ppo_update):
@@ -1552,6 +1590,60 @@ class GoalCuriosityModule:
         self._job.start()
         return out
 
+    def _maybe_start_lead(self, ahead: int) -> None:
+        """Start the predictor update due by ``ahead`` recorded steps (``predictor_lead``), unless a VAE update
+        falls due by then (its pairs would be embedded by the VAE before it)."""
+        if ahead - self.last_predictor_update < self.predictor_train_freq or ahead - self.last_vae_update >= self.vae_train_freq:
+            return
+        last = self.last_predictor_update
+        job = self._prepare_predictor()
+        self.last_predictor_update = last  # due when it would be without a lead
+        if job is None:
+            return
+        lead: dict[str, Any] = {"fit": None, "error": None, "finished": threading.Event()}
+
+        def body() -> None:
+            try:
+                lead["fit"] = self._fit_predictor(**job, before_step=self._lead_gate.wait)
+            except BaseException as error:  # re-raised in the thread that takes it into use
+                lead["error"] = error
+            finally:
+                lead["finished"].set()
+                self._split.wake()
+
+        lead["thread"] = threading.Thread(target=body, name="gocu-lead", daemon=True)
+        self._lead = lead
+        lead["thread"].start()
+
+    @staticmethod
+    def _lead_fit(lead: dict[str, Any]) -> dict[str, Any]:
+        """The fit of a lead update, once its thread has ended (its error raised here)."""
+        lead["thread"].join()
+        if lead["error"] is not None:
+            raise lead["error"]
+        return lead["fit"]
+
+    def finish_updates(self) -> dict[str, float]:
+        """Wait for every update started by :meth:`maybe_train` (:meth:`finish_background_update`, and a
+        predictor update started ahead of time, ``predictor_lead``) and take them into use.
+
+        :return: statistics of those updates
+        """
+        out = self.finish_background_update()
+        lead, self._lead = self._lead, None
+        if lead is None:
+            return out
+        self._lead_gate.set()
+        if self.split_updates:
+            self._split.help(lead["finished"])
+        try:
+            fit = self._lead_fit(lead)
+        except BaseException as error:
+            raise RuntimeError("a background curiosity update failed") from error
+        self.last_predictor_update = self.n_recorded_steps
+        out.update(self._finish_predictor(fit))
+        return out
+
     def _run_job(self, name: str, job: dict[str, Any]) -> dict[str, float]:
         if name == "predictor":
             return self._finish_predictor(self._helped(functools.partial(self._fit_predictor, **job)))
@@ -1560,7 +1652,10 @@ class GoalCuriosityModule:
     def _background(self) -> None:
         try:
             for name, job in self._job_result["jobs"]:
-                self._job_result["fits"].append((name, self._fit_predictor(**job) if name == "predictor" else self._fit_vae_job(job)))
+                if name == "lead":
+                    self._job_result["fits"].append(("predictor", self._lead_fit(job)))
+                else:
+                    self._job_result["fits"].append((name, self._fit_predictor(**job) if name == "predictor" else self._fit_vae_job(job)))
         except BaseException as error:  # re-raised in the caller's thread by finish_background_update
             self._job_result["error"] = error
         finally:
@@ -1574,7 +1669,10 @@ class GoalCuriosityModule:
 
     def _await_overlapped_update(self) -> None:
         """Before the module is used again, take into use an update started by :meth:`maybe_train` with
-        ``overlap_ppo_update`` (waiting for it if it still runs)."""
+        ``overlap_ppo_update`` (waiting for it if it still runs). A predictor update started ahead of time
+        (``predictor_lead``) pauses meanwhile."""
+        if self._lead is not None:
+            self._lead_gate.clear()
         if self._job is not None and self._job_until_next_use:
             self._unreported.update(self.finish_background_update())
         elif self._queue and not self._holding_queue:
@@ -1715,9 +1813,9 @@ class GoalCuriosityModule:
     def state_dict(self) -> dict[str, Any]:
         """Everything the module learned and remembers, as tensors and plain Python values (loadable with
         ``torch.load(..., weights_only=True)``). A background update still running is waited for and taken
-        into use first, and so are scores still being computed (:meth:`submit`)."""
+        into use first (:meth:`finish_updates`), and so are scores still being computed (:meth:`submit`)."""
         self.collect_all()
-        self.finish_background_update()
+        self.finish_updates()
         return {
             "vae": self.vae.state_dict(),
             "vae_optimizer": self.vae_optimizer.state_dict(),
@@ -1750,6 +1848,7 @@ class GoalCuriosityModule:
                 "n_recorded_steps": self.n_recorded_steps,
                 "last_vae_update": self.last_vae_update,
                 "last_predictor_update": self.last_predictor_update,
+                "recorded_at_last_train": self._recorded_at_last_train,
             },
         }
 
@@ -1767,7 +1866,7 @@ class GoalCuriosityModule:
             if bad:
                 raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
         self.collect_all()
-        self.finish_background_update()
+        self.finish_updates()
         self.vae.load_state_dict(state["vae"], strict=strict)
         self._phi_cache.clear()
         self.predictor.load_state_dict(state["predictor"], strict=strict)
@@ -1797,6 +1896,7 @@ class GoalCuriosityModule:
         self.n_recorded_steps = int(c["n_recorded_steps"])
         self.last_vae_update = int(c["last_vae_update"])
         self.last_predictor_update = int(c["last_predictor_update"])
+        self._recorded_at_last_train = int(c.get("recorded_at_last_train", self.n_recorded_steps))  # saved from predictor_lead on
         self._folded = self._fold()
         envs = state.get("envs")
         if envs is not None:

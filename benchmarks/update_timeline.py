@@ -130,6 +130,10 @@ def main() -> None:
     curiosity_kwargs = json.loads(args.curiosity_kwargs)
     if not isinstance(curiosity_kwargs, dict):
         raise SystemExit(f"--curiosity-kwargs must be a JSON object, got {args.curiosity_kwargs!r}")
+    if curiosity_kwargs.get("predictor_lead", 0):
+        # a lead fit starts rollouts before it is due and pauses while they run: its wall time and its wait would
+        # be given to the wrong rollout by the rows below
+        raise SystemExit(f"--curiosity-kwargs: predictor_lead must be 0 for this timeline, got {curiosity_kwargs['predictor_lead']!r}")
     fix_malloc_thresholds()
     th.set_num_threads(args.threads)
     print("command: python " + " ".join(sys.argv))

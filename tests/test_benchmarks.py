@@ -4,6 +4,7 @@
 import csv
 import json
 import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -444,3 +445,11 @@ def test_update_timeline_rows():
     assert (pred2.ppo_end, pred2.used, pred2.rollout_end, pred2.waited) == (8.2, 11.1, 11.2, None)  # its job's extra time goes to the VAE fit
     assert (vae.ppo_end, vae.used, vae.rollout_end) == (8.2, 11.1, 11.2) and vae.waited == pytest.approx(2.0)
     assert waited == pytest.approx({"predictor": 0.7, "vae": 2.0})
+
+
+def test_update_timeline_refuses_a_predictor_lead(monkeypatch):
+    """Its rows would give a lead fit's wait to the wrong rollout, so predictor_lead > 0 is refused before any run."""
+    timeline = load_script("update_timeline", "benchmarks/update_timeline.py")
+    monkeypatch.setattr(sys, "argv", ["update_timeline.py", "--curiosity-kwargs", '{"predictor_lead": 1}'])
+    with pytest.raises(SystemExit, match="predictor_lead must be 0 for this timeline, got 1"):
+        timeline.main()

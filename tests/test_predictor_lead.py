@@ -94,13 +94,13 @@ def test_a_lead_update_pauses_while_the_module_is_used_and_is_taken_into_use_whe
     time.sleep(0.2)  # a step under way ends
     count = _steps_taken(module)
     time.sleep(0.3)
-    assert len(count) <= 2 and not lead["finished"].is_set()  # at most the wait it was in and the one after
+    assert len(count) <= 2 and not lead.finished.is_set()  # at most the wait it was in and the one after
     _rollout(module, 15)
     module.maybe_train()  # due: taken into use before the module is next used
     assert module._lead is None and module.last_predictor_update == module.n_recorded_steps
     before = module._folded
     _rollout(module, 1)
-    assert lead["finished"].is_set() and module._folded is not before
+    assert lead.finished.is_set() and module._folded is not before
 
 
 def test_saving_takes_a_lead_update_into_use():
@@ -126,3 +126,35 @@ def test_saving_takes_a_lead_update_into_use():
 def test_predictor_lead_is_checked(kwargs):
     with pytest.raises(ValueError, match="predictor_lead"):
         GoalCuriosityModule(ChainEnv().observation_space, **{**SMALL_CURIOSITY, "overlap_ppo_update": True, **kwargs})
+
+
+def _failing_fit(module: GoalCuriosityModule) -> None:
+    def fit(*args, **kwargs):
+        raise ValueError("fit broke")
+
+    module._fit_predictor = fit  # type: ignore[method-assign]
+
+
+def test_an_error_in_a_lead_update_is_raised_where_it_is_taken_into_use():
+    module = _module()
+    _failing_fit(module)
+    _rollout(module)
+    module.maybe_train()  # the lead starts, and fails in its thread
+    lead = module._lead
+    assert lead is not None and lead.finished.wait(10)
+    with pytest.raises(RuntimeError, match="a background curiosity update failed") as raised:
+        module.finish_updates()
+    assert isinstance(raised.value.__cause__, ValueError) and str(raised.value.__cause__) == "fit broke"
+    assert module._lead is None and not module.update_running
+
+
+def test_an_error_in_an_overlapped_update_is_raised_where_it_is_taken_into_use():
+    """The same for an update due now (the job's thread), taken into use by the module's next use."""
+    module = _module(predictor_lead=0)
+    _failing_fit(module)
+    _rollout(module, 64)
+    module.maybe_train()  # due: runs beside "PPO's update" and fails
+    assert module.update_running
+    with pytest.raises(RuntimeError, match="a background curiosity update failed") as raised:
+        _rollout(module, 1)
+    assert isinstance(raised.value.__cause__, ValueError) and not module.update_running

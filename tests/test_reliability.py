@@ -620,7 +620,7 @@ def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit(proc
         runs.append(model)
     a, b = runs
     assert overlapped[:8].count(True) == 4 and not any(overlapped[8:]), "updates ran beside PPO's with overlap only"
-    assert {j for j, o in zip(jobs, overlapped) if o} == {"Thread"}
+    assert {j for j, o in zip(jobs, overlapped) if o} == {"FitThread"}
     assert a.curiosity.stats["predictor_pairs"] > 0 and a.curiosity.time_vae > 0
     assert not differences(parameters(a), parameters(b))
     assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())

@@ -167,6 +167,48 @@ class ScoringTicket:
         self.queued: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None] | None = None
 
 
+class FitThread:
+    """Curiosity fits run in a thread of their own: an update overlapped with PPO's (``overlap_ppo_update``,
+    ``train_in_background``) or a predictor update started ahead of time (``predictor_lead``). The thread that
+    takes them into use gets their results from :meth:`take`, which raises there what the fits raised.
+
+    :param name: the thread's name
+    :param work: runs the fits; returns ``(network name, fit)`` pairs for :meth:`GoalCuriosityModule._finish_fits`
+    :param wake: called when the fits end (``split_updates``' helper stops waiting for halves to compute)
+    """
+
+    def __init__(self, name: str, work: Callable[[], list[tuple[str, dict[str, Any]]]], wake: Callable[[], None]) -> None:
+        self._work, self._wake = work, wake
+        self._fits: list[tuple[str, dict[str, Any]]] = []
+        self._error: BaseException | None = None
+        self.finished = threading.Event()  # set when the fits end
+        self.thread = threading.Thread(target=self._body, name=name, daemon=True)
+        self.thread.start()
+
+    def _body(self) -> None:
+        try:
+            self._fits = self._work()
+        except BaseException as error:  # raised again in the thread that takes the fits into use
+            self._error = error
+        finally:
+            self.finished.set()
+            self._wake()
+
+    def outcome(self) -> list[tuple[str, dict[str, Any]]]:
+        """Wait for the thread to end: the fits, or the error they raised, as raised."""
+        self.thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._fits
+
+    def take(self) -> list[tuple[str, dict[str, Any]]]:
+        """Wait for the thread to end: the fits, or a ``RuntimeError`` from the error they raised."""
+        try:
+            return self.outcome()
+        except BaseException as error:
+            raise RuntimeError("a background curiosity update failed") from error
+
+
 class GoalCuriosityModule:
     """Goal-based curiosity (GoCu) on batches of observations.
 
@@ -618,13 +660,11 @@ class GoalCuriosityModule:
         self.train_in_background = train_in_background
         self.overlap_ppo_update = overlap_ppo_update
         self.update_threads = None if update_threads is None else int(update_threads)
-        self._job: threading.Thread | None = None
-        self._job_result: dict[str, Any] = {}
+        self._job: FitThread | None = None  # an update started by maybe_train, not yet taken into use
         self._job_until_next_use = False  # the running update is taken into use before the module is next used
-        self._job_finished = threading.Event()  # set when the running update's fits end (split_updates' helper stops)
         self._unreported: dict[str, float] = {}  # statistics of updates taken into use outside maybe_train
         self.predictor_lead = int(predictor_lead)
-        self._lead: dict[str, Any] | None = None  # a predictor update started before it is due (predictor_lead)
+        self._lead: FitThread | None = None  # a predictor update started before it is due (predictor_lead)
         self._lead_gate = threading.Event()  # set while the lead update may run: between a rollout's end and the next
         self._recorded_at_last_train = 0  # n_recorded_steps at the last maybe_train (a rollout's recorded steps)
         self._queue: deque[ScoringTicket] = deque()  # steps submitted while an overlapped update runs (queue_during_update)
@@ -992,7 +1032,7 @@ class GoalCuriosityModule:
         PPO's still runs. Once it is done, it is taken into use and the queue submitted, and this is False."""
         if not self.queue_during_update:
             return False
-        if self._job is not None and self._job_until_next_use and not self._job_finished.is_set():
+        if self._job is not None and self._job_until_next_use and not self._job.finished.is_set():
             return True
         self._await_overlapped_update()
         return False
@@ -1584,10 +1624,7 @@ class GoalCuriosityModule:
                 out.update(self._run_job(name, job))
             return out
         self._job_until_next_use = not self.train_in_background
-        self._job_result = {"jobs": jobs, "fits": [], "error": None}
-        self._job_finished = threading.Event()
-        self._job = threading.Thread(target=self._background, name="gocu-update", daemon=True)
-        self._job.start()
+        self._job = FitThread("gocu-update", functools.partial(self._fit_jobs, jobs), self._split.wake)
         return out
 
     def _maybe_start_lead(self, ahead: int) -> None:
@@ -1600,28 +1637,8 @@ class GoalCuriosityModule:
         self.last_predictor_update = last  # due when it would be without a lead
         if job is None:
             return
-        lead: dict[str, Any] = {"fit": None, "error": None, "finished": threading.Event()}
-
-        def body() -> None:
-            try:
-                lead["fit"] = self._fit_predictor(**job, before_step=self._lead_gate.wait)
-            except BaseException as error:  # re-raised in the thread that takes it into use
-                lead["error"] = error
-            finally:
-                lead["finished"].set()
-                self._split.wake()
-
-        lead["thread"] = threading.Thread(target=body, name="gocu-lead", daemon=True)
-        self._lead = lead
-        lead["thread"].start()
-
-    @staticmethod
-    def _lead_fit(lead: dict[str, Any]) -> dict[str, Any]:
-        """The fit of a lead update, once its thread has ended (its error raised here)."""
-        lead["thread"].join()
-        if lead["error"] is not None:
-            raise lead["error"]
-        return lead["fit"]
+        fit = functools.partial(self._fit_predictor, **job, before_step=self._lead_gate.wait)
+        self._lead = FitThread("gocu-lead", lambda: [("predictor", fit())], self._split.wake)
 
     def finish_updates(self) -> dict[str, float]:
         """Wait for every update started by :meth:`maybe_train` (:meth:`finish_background_update`, and a
@@ -1635,13 +1652,10 @@ class GoalCuriosityModule:
             return out
         self._lead_gate.set()
         if self.split_updates:
-            self._split.help(lead["finished"])
-        try:
-            fit = self._lead_fit(lead)
-        except BaseException as error:
-            raise RuntimeError("a background curiosity update failed") from error
+            self._split.help(lead.finished)
+        fits = lead.take()
         self.last_predictor_update = self.n_recorded_steps
-        out.update(self._finish_predictor(fit))
+        out.update(self._finish_fits(fits))
         return out
 
     def _run_job(self, name: str, job: dict[str, Any]) -> dict[str, float]:
@@ -1649,18 +1663,23 @@ class GoalCuriosityModule:
             return self._finish_predictor(self._helped(functools.partial(self._fit_predictor, **job)))
         return self._finish_vae(self._helped(functools.partial(self._fit_vae_job, job)))
 
-    def _background(self) -> None:
-        try:
-            for name, job in self._job_result["jobs"]:
-                if name == "lead":
-                    self._job_result["fits"].append(("predictor", self._lead_fit(job)))
-                else:
-                    self._job_result["fits"].append((name, self._fit_predictor(**job) if name == "predictor" else self._fit_vae_job(job)))
-        except BaseException as error:  # re-raised in the caller's thread by finish_background_update
-            self._job_result["error"] = error
-        finally:
-            self._job_finished.set()
-            self._split.wake()
+    def _fit_jobs(self, jobs: list[tuple[str, Any]]) -> list[tuple[str, dict[str, Any]]]:
+        """The fits of an update started by :meth:`maybe_train`, in order (run in its :class:`FitThread`); a
+        ``"lead"`` job is a predictor update started ahead of time, whose thread this waits for."""
+        fits: list[tuple[str, dict[str, Any]]] = []
+        for name, job in jobs:
+            if name == "lead":
+                fits.extend(job.outcome())
+            else:
+                fits.append((name, self._fit_predictor(**job) if name == "predictor" else self._fit_vae_job(job)))
+        return fits
+
+    def _finish_fits(self, fits: list[tuple[str, dict[str, Any]]]) -> dict[str, float]:
+        """Take fits run in a :class:`FitThread` into use, in order."""
+        out: dict[str, float] = {}
+        for name, fit in fits:
+            out.update(self._finish_predictor(fit) if name == "predictor" else self._finish_vae(fit))
+        return out
 
     @property
     def update_running(self) -> bool:
@@ -1699,21 +1718,18 @@ class GoalCuriosityModule:
         if self._job is None:
             return {}
         t0 = time.perf_counter()
+        job = self._job
         if self.split_updates:
-            self._split.help(self._job_finished)  # this thread computes halves of the update's products meanwhile
-        self._job.join()
+            self._split.help(job.finished)  # this thread computes halves of the update's products meanwhile
+        job.thread.join()
         if self._job_until_next_use:
             self.time_update_wait += time.perf_counter() - t0
         self._job = None
         self._job_until_next_use = False
-        result, self._job_result = self._job_result, {}
-        if result["error"] is not None:
-            raise RuntimeError("a background curiosity update failed") from result["error"]
-        out: dict[str, float] = {}
+        fits = job.take()
         holding, self._holding_queue = self._holding_queue, True  # the queued steps meet the finished update
         try:
-            for name, fit in result["fits"]:
-                out.update(self._finish_predictor(fit) if name == "predictor" else self._finish_vae(fit))
+            out = self._finish_fits(fits)
         finally:
             self._holding_queue = holding
         if self._queue and not holding:

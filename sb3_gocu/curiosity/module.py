@@ -1658,20 +1658,20 @@ class GoalCuriosityModule:
         out.update(self._finish_fits(fits))
         return out
 
+    def _fit_job(self, name: str, job: dict[str, Any]) -> dict[str, Any]:
+        """Run a ``"predictor"`` or ``"vae"`` job's fit (not yet taken into use)."""
+        return self._fit_predictor(**job) if name == "predictor" else self._fit_vae_job(job)
+
     def _run_job(self, name: str, job: dict[str, Any]) -> dict[str, float]:
-        if name == "predictor":
-            return self._finish_predictor(self._helped(functools.partial(self._fit_predictor, **job)))
-        return self._finish_vae(self._helped(functools.partial(self._fit_vae_job, job)))
+        """Fit a job in place and take it into use."""
+        return self._finish_fits([(name, self._helped(functools.partial(self._fit_job, name, job)))])
 
     def _fit_jobs(self, jobs: list[tuple[str, Any]]) -> list[tuple[str, dict[str, Any]]]:
         """The fits of an update started by :meth:`maybe_train`, in order (run in its :class:`FitThread`); a
         ``"lead"`` job is a predictor update started ahead of time, whose thread this waits for."""
         fits: list[tuple[str, dict[str, Any]]] = []
         for name, job in jobs:
-            if name == "lead":
-                fits.extend(job.outcome())
-            else:
-                fits.append((name, self._fit_predictor(**job) if name == "predictor" else self._fit_vae_job(job)))
+            fits.extend(job.outcome() if name == "lead" else [(name, self._fit_job(name, job))])
         return fits
 
     def _finish_fits(self, fits: list[tuple[str, dict[str, Any]]]) -> dict[str, float]:

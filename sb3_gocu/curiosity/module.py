@@ -1675,7 +1675,7 @@ class GoalCuriosityModule:
         return fits
 
     def _finish_fits(self, fits: list[tuple[str, dict[str, Any]]]) -> dict[str, float]:
-        """Take fits run in a :class:`FitThread` into use, in order."""
+        """Take fits into use, in order (run in place or in a :class:`FitThread`)."""
         out: dict[str, float] = {}
         for name, fit in fits:
             out.update(self._finish_predictor(fit) if name == "predictor" else self._finish_vae(fit))

@@ -453,3 +453,27 @@ def test_update_timeline_refuses_a_predictor_lead(monkeypatch):
     monkeypatch.setattr(sys, "argv", ["update_timeline.py", "--curiosity-kwargs", '{"predictor_lead": 1}'])
     with pytest.raises(SystemExit, match="predictor_lead must be 0 for this timeline, got 1"):
         timeline.main()
+
+
+def test_busy_core_times_ppo_updates_beside_each_load_dtype():
+    """benchmarks/busy_core.py --work update, tiny: its step trains the policy (the parameters move), and it times
+    one idle arm and one busy arm per load dtype."""
+    bench = load_script("busy_core", "benchmarks/busy_core.py")
+    from stable_baselines3.common.env_util import make_vec_env
+
+    threads = th.get_num_threads()
+    try:
+        venv = make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=16, seed=0)
+        venv.reset()
+        step = bench.ppo_update_step(venv, 0)
+        params = step.__closure__  # the policy is reached through the step's closure
+        policy = next(c.cell_contents for c in params if hasattr(c.cell_contents, "evaluate_actions"))
+        before = [p.detach().clone() for p in policy.parameters()]
+        step()
+        assert any(not th.equal(a, b) for a, b in zip(before, policy.parameters()))
+        rates = bench.main(["--env", "GoCu/DoorKey-5x5-v0", "--work", "update", "--steps", "1", "--repeats", "1",
+                            "--load-dtypes", "float32", "bfloat16"])
+    finally:
+        th.set_num_threads(threads)
+    assert list(rates) == ["idle", "busy float32", "busy bfloat16"]
+    assert all(len(r) == 1 and r[0] > 0 for r in rates.values())

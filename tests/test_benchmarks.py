@@ -5,6 +5,7 @@ import csv
 import json
 import shutil
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -455,9 +456,9 @@ def test_update_timeline_refuses_a_predictor_lead(monkeypatch):
         timeline.main()
 
 
-def test_busy_core_times_ppo_updates_beside_each_load_dtype():
-    """benchmarks/busy_core.py --work update, tiny: its step trains the policy (the parameters move), and it times
-    one idle arm and one busy arm per load dtype."""
+def test_busy_core_times_ppo_updates_beside_each_load():
+    """benchmarks/busy_core.py --work update, tiny: its step trains the policy (the parameters move), it times one
+    idle arm and one busy arm per load, and the thread load stops with its arm."""
     bench = load_script("busy_core", "benchmarks/busy_core.py")
     from stable_baselines3.common.env_util import make_vec_env
 
@@ -472,8 +473,13 @@ def test_busy_core_times_ppo_updates_beside_each_load_dtype():
         step()
         assert any(not th.equal(a, b) for a, b in zip(before, policy.parameters()))
         rates = bench.main(["--env", "GoCu/DoorKey-5x5-v0", "--work", "update", "--steps", "1", "--repeats", "1",
-                            "--load-dtypes", "float32", "bfloat16"])
+                            "--loads", "float32", "predictor-thread"])
     finally:
         th.set_num_threads(threads)
-    assert list(rates) == ["idle", "busy float32", "busy bfloat16"]
+    assert list(rates) == ["idle", "busy float32", "busy predictor-thread"]
     assert all(len(r) == 1 and r[0] > 0 for r in rates.values())
+    load = bench.Load("vae-thread")
+    with load:
+        time.sleep(0.2)
+        assert load.thread.is_alive()
+    assert not load.thread.is_alive()

@@ -156,11 +156,19 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
     args = p.parse_args(argv)
     if args.steps < (16 if args.work == "env" else 1) or args.repeats < 1:
         p.error(f"--steps must be >= 16 (env) or >= 1 (update) and --repeats >= 1, got {args.steps} and {args.repeats}")
+    if args.switch_interval is not None and not 0 < args.switch_interval <= 1:
+        p.error(f"--switch-interval must be in (0, 1] seconds, got {args.switch_interval}")
+    before = sys.getswitchinterval()
+    try:
+        if args.switch_interval is not None:
+            sys.setswitchinterval(args.switch_interval)
+        return _run(args, argv)
+    finally:
+        sys.setswitchinterval(before)
+
+
+def _run(args: argparse.Namespace, argv: list[str] | None) -> dict[str, list[float]]:
     print("command: python benchmarks/busy_core.py " + " ".join(sys.argv[1:] if argv is None else argv))
-    if args.switch_interval is not None:
-        if not 0 < args.switch_interval <= 1:
-            p.error(f"--switch-interval must be in (0, 1] seconds, got {args.switch_interval}")
-        sys.setswitchinterval(args.switch_interval)
     print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, seed {args.seed}; each load runs 1 torch thread; "
           f"switch interval {sys.getswitchinterval() * 1e3:g} ms")
     venv = make_vec_env(args.env, n_envs=16, seed=args.seed)

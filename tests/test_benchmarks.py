@@ -472,8 +472,10 @@ def test_busy_core_times_ppo_updates_beside_each_load():
         before = [p.detach().clone() for p in policy.parameters()]
         step()
         assert any(not th.equal(a, b) for a, b in zip(before, policy.parameters()))
+        interval = sys.getswitchinterval()
         rates = bench.main(["--env", "GoCu/DoorKey-5x5-v0", "--work", "update", "--steps", "1", "--repeats", "1",
-                            "--loads", "float32", "predictor-thread"])
+                            "--loads", "float32", "predictor-thread", "--switch-interval", "0.0005"])
+        assert sys.getswitchinterval() == interval  # the script's interval is its timings' only
     finally:
         th.set_num_threads(threads)
     assert list(rates) == ["idle", "busy float32", "busy predictor-thread"]

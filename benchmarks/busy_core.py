@@ -11,8 +11,8 @@ matrices in a loop with 1 torch thread (the shape of eq 13 for 16 envs and K = 5
 and prints the two medians and their ratio.
 
 ``--work update`` times ``--steps`` of PPO's minibatch steps instead (plain PPO's CnnPolicy with the paper's CNN,
-256 observations of the env, loss, backward and Adam step, 1 torch thread), the part of a PPO_GoCu run that ran
-14-30 s slower per 400k steps beside the curiosity fits. ``--loads`` names the busy arms, one load each:
+256 observations of the env, loss, backward and Adam step, 1 torch thread), the part of a PPO_GoCu run that took
+7-30 s longer per 400k steps than plain PPO's in the same run, beside the curiosity fits. ``--loads`` names the busy arms, one load each:
 ``float32`` / ``bfloat16``, the products above in that dtype in a child process (``bfloat16`` takes the
 AMX/AVX512-BF16 kernels where the CPU has them); ``predictor-process`` / ``predictor-thread``, predictor minibatch
 steps (the module's 5x512 MasteryPredictor, Adam, 128 pairs) in a child process or in a thread of this process, as

@@ -119,7 +119,9 @@ def update_rate(step, steps: int) -> float:
 
 def ppo_update_step(venv, seed: int):
     """One of PPO's minibatch steps (clipped loss, value loss, entropy, backward, Adam) on 256 of the env's
-    observations, with plain PPO's CnnPolicy and the paper's CNN."""
+    observations, with plain PPO's CnnPolicy and the paper's CNN.
+
+    :return: the step (a callable) and the policy it trains"""
     import torch as th
     from stable_baselines3 import PPO
 
@@ -127,9 +129,10 @@ def ppo_update_step(venv, seed: int):
 
     model = PPO("CnnPolicy", venv, seed=seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **PAPER_PPO_KWARGS)
     policy = model.policy
-    obs = np.concatenate([venv.step(np.random.default_rng(seed).integers(venv.action_space.n, size=venv.num_envs))[0] for _ in range(16)])
+    rng = np.random.default_rng(seed)
+    obs = np.concatenate([venv.step(rng.integers(venv.action_space.n, size=venv.num_envs))[0] for _ in range(16)])
     obs_t, _ = policy.obs_to_tensor(obs)
-    actions = th.as_tensor(np.random.default_rng(seed).integers(venv.action_space.n, size=len(obs)))
+    actions = th.as_tensor(rng.integers(venv.action_space.n, size=len(obs)))
     adv, returns, old_logp = th.randn(len(obs)), th.randn(len(obs)), th.full((len(obs),), -1.9)
 
     def step() -> None:
@@ -141,7 +144,7 @@ def ppo_update_step(venv, seed: int):
         th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
         policy.optimizer.step()
 
-    return step
+    return step, policy
 
 
 def main(argv: list[str] | None = None) -> dict[str, list[float]]:
@@ -183,7 +186,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> dict[str, list[flo
         import torch as th
 
         th.set_num_threads(1)
-        step = ppo_update_step(venv, args.seed)
+        step, _ = ppo_update_step(venv, args.seed)
         def timed() -> float:
             return update_rate(step, args.steps)
         unit = "minibatch steps/s"

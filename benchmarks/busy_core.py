@@ -10,8 +10,8 @@ alternately with nothing else running and beside a child process that multiplies
 matrices in a loop with 1 torch thread (the shape of eq 13 for 16 envs and K = 50), ``--repeats`` times each,
 and prints the two medians and their ratio.
 
-``--work update`` times ``--steps`` of PPO's minibatch steps instead (plain PPO's CnnPolicy with the paper's CNN,
-256 observations of the env, loss, backward and Adam step, 1 torch thread), the part of a PPO_GoCu run that took
+``--work update`` times ``--steps`` of PPO's minibatch steps instead (SB3's ``PPO.train`` on a rollout of 256 of
+the env's observations in one batch of 256, plain PPO's CnnPolicy with the paper's CNN, 1 torch thread), the part of a PPO_GoCu run that took
 7-30 s longer per 400k steps than plain PPO's in the same run, beside the curiosity fits. ``--loads`` names the busy arms, one load each:
 ``float32`` / ``bfloat16``, the products above in that dtype in a child process (``bfloat16`` takes the
 AMX/AVX512-BF16 kernels where the CPU has them); ``predictor-process`` / ``predictor-thread``, predictor minibatch
@@ -46,11 +46,11 @@ LOAD = (
 FITS = {
     "predictor": (
         "import torch; torch.set_num_threads(1)\n"
-        "from sb3_gocu.curiosity.networks import MasteryPredictor\n"
+        "from sb3_gocu.curiosity.networks import MasteryPredictor, mastery_loss\n"
         "torch.manual_seed(0); p = MasteryPredictor(128); opt = torch.optim.Adam(p.parameters(), 5e-4, foreach=True)\n"
         "x, g, t = torch.randn(128, 128), torch.randn(128, 128), torch.rand(128)\n"
         "def fit_step():\n"
-        "    logp = torch.log_softmax(p(x, g), -1); loss = -(t * logp[:, 1] + (1 - t) * logp[:, 0]).mean()\n"
+        "    loss = mastery_loss(p(x, g), t)[0]\n"
         "    opt.zero_grad(); loss.backward(); opt.step()\n"
     ),
     "vae": (
@@ -118,33 +118,21 @@ def update_rate(step, steps: int) -> float:
 
 
 def ppo_update_step(venv, seed: int):
-    """One of PPO's minibatch steps (clipped loss, value loss, entropy, backward, Adam) on 256 of the env's
-    observations, with plain PPO's CnnPolicy and the paper's CNN.
+    """One of PPO's minibatch steps, made by SB3's own ``PPO.train`` (clipped loss, value loss, entropy, backward,
+    gradient clipping, Adam, its logging): plain PPO's CnnPolicy with the paper's CNN and the SPEC's settings but
+    for the rollout's size, 16 steps of the 16 envs, so that one epoch over one batch of 256 is one minibatch step.
+    The rollout is collected once (the policy's own actions); every step trains on it again.
 
     :return: the step (a callable) and the policy it trains"""
-    import torch as th
     from stable_baselines3 import PPO
 
     from sb3_gocu import PAPER_PPO_KWARGS, PaperCNN
 
-    model = PPO("CnnPolicy", venv, seed=seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **PAPER_PPO_KWARGS)
-    policy = model.policy
-    rng = np.random.default_rng(seed)
-    obs = np.concatenate([venv.step(rng.integers(venv.action_space.n, size=venv.num_envs))[0] for _ in range(16)])
-    obs_t, _ = policy.obs_to_tensor(obs)
-    actions = th.as_tensor(rng.integers(venv.action_space.n, size=len(obs)))
-    adv, returns, old_logp = th.randn(len(obs)), th.randn(len(obs)), th.full((len(obs),), -1.9)
-
-    def step() -> None:
-        values, logp, entropy = policy.evaluate_actions(obs_t, actions)
-        ratio = th.exp(logp - old_logp)
-        loss = -th.min(adv * ratio, adv * th.clamp(ratio, 0.8, 1.2)).mean() + 0.5 * ((returns - values.flatten()) ** 2).mean() - 0.01 * entropy.mean()
-        policy.optimizer.zero_grad()
-        loss.backward()
-        th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
-        policy.optimizer.step()
-
-    return step, policy
+    settings = {**PAPER_PPO_KWARGS, "n_steps": 256 // venv.num_envs, "batch_size": 256, "n_epochs": 1}
+    model = PPO("CnnPolicy", venv, seed=seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **settings)
+    _, callback = model._setup_learn(total_timesteps=256)
+    model.collect_rollouts(model.env, callback, model.rollout_buffer, n_rollout_steps=model.n_steps)
+    return model.train, model.policy
 
 
 def main(argv: list[str] | None = None) -> dict[str, list[float]]:

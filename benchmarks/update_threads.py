@@ -29,7 +29,7 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_gocu.curiosity.module import GoalCuriosityModule
-from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, vae_loss
+from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, mastery_loss, vae_loss
 
 
 def vae_trainer(batch: int) -> tuple[th.nn.Module, Callable[[], None]]:
@@ -73,8 +73,7 @@ def predictor_trainer(batch: int) -> tuple[th.nn.Module, Callable[[], None]]:
     predictor.train()
 
     def step() -> None:
-        logp = th.log_softmax(predictor(a, b), dim=-1)
-        loss = -(y * logp[:, 1] + (1 - y) * logp[:, 0]).mean()
+        loss = mastery_loss(predictor(a, b), y)[0]
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -10,7 +10,7 @@ import torch as th
 from torch import nn
 
 from sb3_gocu.curiosity.module import torch_threads
-from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE, vae_loss
+from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE, mastery_loss, vae_loss
 from sb3_gocu.curiosity.parallel import SplitConv2d, SplitConvTranspose2d, SplitLinear, SplitWork, splitting
 
 
@@ -25,8 +25,7 @@ def _train_predictor(steps: int = 6, embed: int = 16, hidden: tuple[int, ...] = 
     g = th.Generator().manual_seed(1)
     for _ in range(steps):
         s, goal, t = th.randn(batch, embed, generator=g), th.randn(batch, embed, generator=g), th.rand(batch, generator=g)
-        logp = th.log_softmax(net(s, goal), dim=-1)
-        loss = -(t * logp[:, 1] + (1 - t) * logp[:, 0]).mean()
+        loss = mastery_loss(net(s, goal), t)[0]
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -15,6 +15,7 @@ from sb3_gocu.curiosity import (
     complexity_score,
     curiosity_reward,
     mastered_probability,
+    mastery_loss,
     revisit_factor,
 )
 
@@ -151,6 +152,20 @@ def test_labels_eq15_eq16_by_hand():
     expected = [1 - 1 / (1 + math.exp(-0.8 * (x - 15.0))) for x in (3.0, 16.5, 33.0)]
     assert p.tolist() == pytest.approx(expected, abs=1e-6)
     assert expected[0] > 0.99 and expected[2] < 1e-5  # near skills are mastered, far ones are not
+
+
+def test_mastery_loss_by_hand():
+    """The predictor's loss: weighted mean cross-entropy of softmax(logits)[1] against the targets."""
+    logits = th.tensor([[0.0, 1.0], [2.0, 0.0], [0.0, 0.0]])
+    target = th.tensor([1.0, 0.25, 0.5])
+    # p(mastered) = sigmoid(logit_1 - logit_0): sigmoid(1), sigmoid(-2), 1/2
+    ll = [math.log(sigmoid(1.0)), 0.25 * math.log(sigmoid(-2.0)) + 0.75 * math.log(sigmoid(2.0)), math.log(0.5)]
+    loss, logp = mastery_loss(logits, target)
+    assert loss.item() == pytest.approx(-sum(ll) / 3, abs=1e-6)
+    assert logp[:, 1].exp().tolist() == pytest.approx([sigmoid(1.0), sigmoid(-2.0), 0.5], abs=1e-6)
+    weights = th.tensor([2.0, 0.5, 0.5])  # mean 1, as the module's de-duplicated draws
+    assert mastery_loss(logits, target, weights)[0].item() == pytest.approx(-(2 * ll[0] + 0.5 * ll[1] + 0.5 * ll[2]) / 3, abs=1e-6)
+    assert mastery_loss(logits, target, th.ones(3))[0].item() == loss.item()  # unit weights: the unweighted loss
 
 
 def test_normalizer_eq14_by_hand():

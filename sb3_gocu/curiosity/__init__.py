@@ -2,7 +2,7 @@
 
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.module import GoalCuriosityModule
-from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, PixelWeights, vae_loss
+from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, PixelWeights, mastery_loss, vae_loss
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reward import (
     AGGREGATIONS,
@@ -34,6 +34,7 @@ __all__ = [
     "curiosity_reward",
     "revisit_factor",
     "mastered_probability",
+    "mastery_loss",
     "select_goal_steps",
     "vae_loss",
 ]

@@ -40,7 +40,16 @@ from gymnasium import spaces
 
 from sb3_gocu.curiosity.checks import check as _check, is_flag, is_integer, is_number
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
-from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, PixelWeights, sharded_vae_gradients, vae_loss
+from sb3_gocu.curiosity.networks import (
+    ConvVAE,
+    FoldedPredictor,
+    MasteryPredictor,
+    MlpVAE,
+    PixelWeights,
+    mastery_loss,
+    sharded_vae_gradients,
+    vae_loss,
+)
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.parallel import SplitWork, splitting
 from sb3_gocu.curiosity.scoring import ProcessScorer, eq13_rows, score_rows
@@ -1534,9 +1543,8 @@ class GoalCuriosityModule:
                         before_step()
                     with self._train_autocast():
                         logits = self.predictor(phi_s[idx], phi_g[idx])
-                    logp = th.log_softmax(logits.float(), dim=-1)
                     t, w = target[idx], weights[idx]
-                    loss = -(w * (t * logp[:, 1] + (1 - t) * logp[:, 0])).mean()
+                    loss, logp = mastery_loss(logits, t, w)
                     if not self._guarded_step(self.predictor, self.predictor_optimizer, loss):
                         skipped += 1
                         continue

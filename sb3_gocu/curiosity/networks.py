@@ -356,6 +356,20 @@ class MasteryPredictor(nn.Module):
         return FoldedPredictor(self, dtype)
 
 
+def mastery_loss(logits: th.Tensor, target: th.Tensor, weights: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
+    """The predictor's training loss: cross-entropy of its two logits against the mastery targets (p_skill of
+    eq 16 as soft targets, or 0/1 labels), the mean over the minibatch of ``weights`` x cross-entropy.
+
+    :param logits: (n, 2) the predictor's output (class 1 = mastered); taken in float32
+    :param target: (n,) probability that each pair's goal is mastered, in [0, 1]
+    :param weights: (n,) each pair's weight (its multiplicity in a de-duplicated draw); None: every pair weighs 1
+    :return: the loss (a scalar) and the log-probabilities (n, 2)
+    """
+    logp = th.log_softmax(logits.float(), dim=-1)
+    log_likelihood = target * logp[:, 1] + (1 - target) * logp[:, 0]
+    return -(log_likelihood if weights is None else weights * log_likelihood).mean(), logp
+
+
 class FoldedPredictor:
     """Inference form of :class:`MasteryPredictor` (eval mode), built for scoring K goals per state.
 

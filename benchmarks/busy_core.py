@@ -12,7 +12,8 @@ and prints the two medians and their ratio.
 
 ``--work update`` times ``--steps`` of PPO's minibatch steps instead (SB3's ``PPO.train`` on a rollout of 256 of
 the env's observations in one batch of 256, plain PPO's CnnPolicy with the paper's CNN, 1 torch thread), the part
-of a PPO_GoCu run that took 7-30 s longer per 400k steps than plain PPO's in the same run, beside the curiosity fits. ``--loads`` names the busy arms, one load each:
+of a PPO_GoCu run that took 7-30 s longer per 400k steps than plain PPO's in the same run, beside the curiosity
+fits. ``--loads`` names the busy arms, one load each:
 ``float32`` / ``bfloat16``, the products above in that dtype in a child process (``bfloat16`` takes the
 AMX/AVX512-BF16 kernels where the CPU has them); ``predictor-process`` / ``predictor-thread``, predictor minibatch
 steps (the module's 5x512 MasteryPredictor, Adam, 128 pairs) in a child process or in a thread of this process, as
@@ -117,13 +118,13 @@ def update_rate(step, steps: int) -> float:
     return steps / (time.perf_counter() - t0)
 
 
-def ppo_update_step(venv, seed: int):
+def one_batch_ppo(venv, seed: int):
     """One of PPO's minibatch steps, made by SB3's own ``PPO.train`` (clipped loss, value loss, entropy, backward,
     gradient clipping, Adam, its logging): plain PPO's CnnPolicy with the paper's CNN and the SPEC's settings but
     for the rollout's size, 16 steps of the 16 envs, so that one epoch over one batch of 256 is one minibatch step.
     The rollout is collected once, by ``learn`` (the policy's own actions); every step trains on it again.
 
-    :return: the step (a callable) and the policy it trains"""
+    :return: the model; its ``train`` is the step"""
     from stable_baselines3 import PPO
 
     from sb3_gocu import PAPER_PPO_KWARGS, PaperCNN
@@ -131,7 +132,7 @@ def ppo_update_step(venv, seed: int):
     settings = {**PAPER_PPO_KWARGS, "n_steps": 256 // venv.num_envs, "batch_size": 256, "n_epochs": 1}
     model = PPO("CnnPolicy", venv, seed=seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **settings)
     model.learn(total_timesteps=256)  # collects the rollout (and trains on it once)
-    return model.train, model.policy
+    return model
 
 
 def main(argv: list[str] | None = None) -> dict[str, list[float]]:
@@ -173,7 +174,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> dict[str, list[flo
         import torch as th
 
         th.set_num_threads(1)
-        step, _ = ppo_update_step(venv, args.seed)
+        step = one_batch_ppo(venv, args.seed).train
         def timed() -> float:
             return update_rate(step, args.steps)
         unit = "minibatch steps/s"

@@ -466,13 +466,13 @@ def test_busy_core_times_ppo_updates_beside_each_load():
     try:
         venv = make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=16, seed=0)
         venv.reset()
-        step, policy = bench.ppo_update_step(venv, 0)
-        before = [p.detach().clone() for p in policy.parameters()]
-        updates = step.__self__._n_updates
-        step()
-        assert any(not th.equal(a, b) for a, b in zip(before, policy.parameters()))
-        assert step.__self__._n_updates == updates + 1  # SB3's train(): one epoch of one batch of 256, one minibatch step
-        assert step.__self__.rollout_buffer.buffer_size * venv.num_envs == 256
+        model = bench.one_batch_ppo(venv, 0)
+        before = [p.detach().clone() for p in model.policy.parameters()]
+        updates = model._n_updates
+        model.train()
+        assert any(not th.equal(a, b) for a, b in zip(before, model.policy.parameters()))
+        assert model._n_updates == updates + 1  # SB3's train(): one epoch of one batch of 256, one minibatch step
+        assert model.rollout_buffer.buffer_size * venv.num_envs == 256
         interval = sys.getswitchinterval()
         rates = bench.main(["--env", "GoCu/DoorKey-5x5-v0", "--work", "update", "--steps", "1", "--repeats", "1",
                             "--loads", "float32", "predictor-thread", "--switch-interval", "0.0005"])

@@ -119,9 +119,9 @@ def update_rate(step, steps: int) -> float:
 
 
 def one_batch_ppo(venv, seed: int):
-    """A PPO model whose ``train()`` makes one of PPO's minibatch steps, SB3's own ``PPO.train`` (clipped loss, value loss, entropy, backward,
-    gradient clipping, Adam, its logging): plain PPO's CnnPolicy with the paper's CNN and the SPEC's settings but
-    for the rollout's size, 16 steps of the 16 envs, so that one epoch over one batch of 256 is one minibatch step.
+    """A PPO model whose ``train()`` makes one of PPO's minibatch steps, SB3's own ``PPO.train`` (clipped loss,
+    value loss, entropy, backward, gradient clipping, Adam, its logging): plain PPO's CnnPolicy with the paper's CNN
+    and the SPEC's settings but for the rollout's size, 16 steps of the 16 envs, so that one epoch over one batch of 256 is one minibatch step.
     The rollout is collected once, by ``learn`` (the policy's own actions); every step trains on it again.
 
     :return: the model; its ``train`` is the step"""

@@ -3,13 +3,17 @@
     python benchmarks/plot_curves.py benchmarks/out/doorkey8                      # -> benchmarks/out/doorkey8/curves.png
     python benchmarks/plot_curves.py benchmarks/out/doorkey8 --band std --metric success_rate --out sr.png
     python benchmarks/plot_curves.py benchmarks/out/doorkey16 --per-seed      # runs of different lengths
+    python benchmarks/plot_curves.py runs/gocu runs/ppo --out curves.png       # the runs of several folders
 
 x = env steps, y = mean extrinsic return of the last 100 episodes (``--metric`` picks another CSV column). For
 each algo: the mean over seeds and a band (``--band minmax``: min to max over seeds, the default; ``std``:
 mean +- std). Seeds are put on a common step grid by linear interpolation; at a step that some seed has not
 reached yet (a run still going), only the seeds that reached it count, so the tail of a curve may rest on
 fewer seeds (the legend gives the number of seeds); with ``--per-seed`` each seed's own curve is drawn too and
-the mean and band stop where the shortest run stops. Rows before a run's first finished episode are skipped.
+the mean and band stop where the shortest run stops, and labels that would overlap are moved apart (a thin line
+joins a moved label to its curve's end). Rows before a run's first finished episode are skipped. Several folders
+can be drawn on one figure (runs of one env made on different days or machines); a seed of one algo in two of them
+is refused.
 """
 
 from __future__ import annotations
@@ -36,9 +40,12 @@ YLABELS = {
 }
 
 
-def load_runs(directory: pathlib.Path, metric: str) -> dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]:
+Runs = dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]
+
+
+def load_runs(directory: pathlib.Path, metric: str) -> Runs:
     """{algo: {seed: (steps, values)}} of the ``<algo>_seed<seed>.csv`` files in ``directory``."""
-    runs: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+    runs: Runs = {}
     for path in sorted(directory.glob("*_seed*.csv")):
         m = re.fullmatch(r"(.+)_seed(\d+)\.csv", path.name)
         if not m:
@@ -53,6 +60,48 @@ def load_runs(directory: pathlib.Path, metric: str) -> dict[str, dict[int, tuple
         if steps:
             runs.setdefault(m.group(1), {})[int(m.group(2))] = (np.asarray(steps), np.asarray(values))
     return runs
+
+
+def load_folders(directories: Sequence[pathlib.Path], metric: str) -> Runs:
+    """:func:`load_runs` of each folder, merged; a seed of one algo in two folders raises ``ValueError``."""
+    runs: Runs = {}
+    where: dict[tuple[str, int], pathlib.Path] = {}
+    for directory in directories:
+        for algo, seeds in load_runs(directory, metric).items():
+            for seed, curve in seeds.items():
+                if (algo, seed) in where:
+                    raise ValueError(f"{algo} seed {seed} is in both {where[algo, seed]} and {directory}: pass one of them")
+                where[algo, seed] = directory
+                runs.setdefault(algo, {})[seed] = curve
+    return runs
+
+
+def spread_labels(points: Sequence[tuple[float, float]], width: float, height: float) -> list[float]:
+    """Heights for labels anchored at ``points`` (x, y in axes fractions; a label spans x to x + ``width`` and y
+    +- ``height`` / 2) such that no two overlap and all stay inside the axes: labels that would overlap are
+    stacked ``height`` apart, in the order of their anchors' y, centred on their anchors' mean (moved in as a whole
+    where the stack would leave the axes). Returns the labels' y, in the order of ``points``."""
+    if width <= 0 or height <= 0:
+        raise ValueError(f"width and height must be > 0, got {width} and {height}")
+    order = sorted(range(len(points)), key=lambda j: (points[j][1], points[j][0]))
+    clusters = [[i] for i in order]
+    ys = [0.0] * len(points)
+    while True:
+        for members in clusters:
+            members.sort(key=lambda j: (points[j][1], points[j][0]))
+            n = len(members)
+            low = float(np.mean([points[j][1] for j in members])) - (n - 1) * height / 2
+            top = 1 - height / 2 - (n - 1) * height  # the lowest label's highest place
+            low = max(min(low, top), height / 2)  # inside the axes; a stack taller than them starts at the bottom
+            for k, j in enumerate(members):
+                ys[j] = low + k * height
+        clash = next(((a, b) for a in range(len(clusters)) for b in range(a + 1, len(clusters))
+                      if any(abs(points[i][0] - points[j][0]) < width and abs(ys[i] - ys[j]) < height - 1e-12
+                             for i in clusters[a] for j in clusters[b])), None)
+        if clash is None:
+            return ys
+        a, b = clash
+        clusters[a] += clusters.pop(b)
 
 
 def aggregate(seed_curves: Sequence[tuple[np.ndarray, np.ndarray]], band: str, n_points: int = 400) -> tuple[np.ndarray, ...]:
@@ -80,6 +129,7 @@ def aggregate(seed_curves: Sequence[tuple[np.ndarray, np.ndarray]], band: str, n
 
 
 def env_name(directory: pathlib.Path) -> str | None:
+    """The env id of a ``sample_efficiency.py`` folder: from its checkpoints' state, else its summary's heading."""
     for state in sorted((directory / "checkpoints").glob("*/state_*.json")):
         try:
             return json.loads(state.read_text())["config"]["env"]
@@ -104,18 +154,27 @@ def mean_curve(seed_curves: Sequence[tuple[np.ndarray, np.ndarray]], band: str, 
     return x, mean, lo, hi
 
 
-def plot(directory: str | pathlib.Path, out: str | pathlib.Path | None = None, metric: str = "mean_return", band: str = "minmax",
-         title: str | None = None, threshold: float | None = 0.9, per_seed: bool = False) -> pathlib.Path:
-    """Draw the curves of the runs in ``directory`` and save a PNG; ``per_seed``: also each seed's own curve
-    (thin, labelled at its end), with the mean and band drawn only where every seed has data.
-    :return: the PNG's path"""
-    directory = pathlib.Path(directory)
-    runs = load_runs(directory, metric)
+def plot(directory: str | pathlib.Path | Sequence[str | pathlib.Path], out: str | pathlib.Path | None = None, metric: str = "mean_return",
+         band: str = "minmax", title: str | None = None, threshold: float | None = 0.9, per_seed: bool = False) -> pathlib.Path:
+    """Draw the curves of the runs in ``directory`` (one folder or several) and save a PNG; ``per_seed``: also each
+    seed's own curve (thin, labelled at its end), with the mean and band drawn only where every seed has data.
+    :return: the PNG's path (default: ``curves.png`` in the first folder)"""
+    folders = [pathlib.Path(directory)] if isinstance(directory, (str, pathlib.Path)) else [pathlib.Path(d) for d in directory]
+    if not folders:
+        raise ValueError("directory: give at least one folder")
+    try:
+        runs = load_folders(folders, metric)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
     if not runs:
-        raise SystemExit(f"no <algo>_seed<seed>.csv with a '{metric}' column in {directory}")
-    out = pathlib.Path(out) if out is not None else directory / ("curves.png" if metric == "mean_return" else f"curves_{metric}.png")
+        raise SystemExit(f"no <algo>_seed<seed>.csv with a '{metric}' column in {', '.join(map(str, folders))}")
+    envs = {env for env in map(env_name, folders) if env is not None}
+    if len(envs) > 1:
+        raise SystemExit(f"the folders hold runs of different envs ({', '.join(sorted(envs))}): plot them apart")
+    out = pathlib.Path(out) if out is not None else folders[0] / ("curves.png" if metric == "mean_return" else f"curves_{metric}.png")
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
     order = [a for a in LABELS if a in runs] + sorted(a for a in runs if a not in LABELS)
+    ends: list[tuple[str, float, float, str]] = []  # per seed: label, end x, end y, colour
     for algo in order:
         seeds = sorted(runs[algo])
         x, mean, lo, hi = mean_curve([runs[algo][s] for s in seeds], band, all_seeds=per_seed)
@@ -127,8 +186,7 @@ def plot(directory: str | pathlib.Path, out: str | pathlib.Path | None = None, m
             for seed in seeds:
                 sx, sy = runs[algo][seed]
                 ax.plot(sx, sy, color=line.get_color(), lw=0.7, alpha=0.7)
-                ax.annotate(f"seed {seed}", (sx[-1], sy[-1]), xytext=(3, 0), textcoords="offset points", fontsize=7,
-                            color=line.get_color(), va="center")
+                ends.append((f"seed {seed}", float(sx[-1]), float(sy[-1]), line.get_color()))
     if threshold is not None and metric == "mean_return":
         ax.axhline(threshold, color="grey", ls=":", lw=1)
     ax.set_xlabel("environment steps")
@@ -138,12 +196,21 @@ def plot(directory: str | pathlib.Path, out: str | pathlib.Path | None = None, m
         what = f"thin: each seed; thick: {what}, where every seed ran"
     # per seed, the longer caption goes on a line of its own (one line would be cut at the figure's edge)
     sep = "\n" if per_seed else ": "
-    ax.set_title(title or f"{env_name(directory) or directory.name}{sep}{what}", fontsize=10 if per_seed else None)
+    ax.set_title(title or f"{env_name(folders[0]) or folders[0].name}{sep}{what}", fontsize=10 if per_seed else None)
     ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 0))
     ax.grid(alpha=0.3)
     ax.legend(loc="center right" if per_seed else "upper left")
     if per_seed:
         ax.margins(x=0.1)  # room for the seed labels
+        ax.autoscale_view()
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        anchors = [((ex - x0) / (x1 - x0), (ey - y0) / (y1 - y0)) for _, ex, ey, _ in ends]
+        # a 7-point label "seed N" is about 0.07 of the axes wide and 0.035 high at this figure size
+        heights = spread_labels(anchors, width=0.08, height=0.04)
+        for (text, ex, ey, color), (ax_x, ax_y), y in zip(ends, anchors, heights):
+            moved = abs(y - ax_y) > 1e-9
+            ax.annotate(text, (ex, ey), xytext=(ax_x + 0.005, y), textcoords="axes fraction", fontsize=7, color=color,
+                        va="center", arrowprops=dict(arrowstyle="-", color=color, lw=0.5, alpha=0.7) if moved else None)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out)
@@ -153,8 +220,8 @@ def plot(directory: str | pathlib.Path, out: str | pathlib.Path | None = None, m
 
 def main(argv: Sequence[str] | None = None) -> pathlib.Path:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("directory", help="the --out dir of sample_efficiency.py")
-    p.add_argument("--out", default=None, help="PNG path (default <directory>/curves.png)")
+    p.add_argument("directory", nargs="+", help="the --out dir of sample_efficiency.py (several: their runs on one figure)")
+    p.add_argument("--out", default=None, help="PNG path (default <first directory>/curves.png)")
     p.add_argument("--metric", default="mean_return", help="CSV column on the y axis (mean_return, success_rate, intrinsic_mean, ...)")
     p.add_argument("--band", choices=["minmax", "std"], default="minmax")
     p.add_argument("--title", default=None)

@@ -110,6 +110,43 @@ def test_plot(plot_curves, two_runs, tmp_path):
     assert png2.stat().st_size > 1000
 
 
+def test_spread_labels_by_hand(plot_curves):
+    """Overlapping labels are stacked one height apart around their anchors' mean, inside the axes; labels apart
+    in x, or in y by at least a height, stay where they are."""
+    spread = plot_curves.spread_labels
+    assert spread([(0.5, 0.5), (0.5, 0.5)], 0.1, 0.1) == pytest.approx([0.45, 0.55])
+    assert spread([(0.1, 0.5), (0.5, 0.5), (0.5, 0.7)], 0.1, 0.1) == pytest.approx([0.5, 0.5, 0.7])
+    # three at the same end: stacked in the order of their y, the middle one on the mean
+    assert spread([(0.5, 0.52), (0.5, 0.48), (0.55, 0.5)], 0.1, 0.1) == pytest.approx([0.6, 0.4, 0.5])
+    assert spread([(0.5, 0.0), (0.52, 0.01)], 0.1, 0.1) == pytest.approx([0.05, 0.15])  # moved up into the axes
+    assert spread([(0.5, 0.99)] * 3, 0.1, 0.1) == pytest.approx([0.75, 0.85, 0.95])  # moved down into the axes
+    # a chain: b overlaps a, and c overlaps the stack of a and b, so all three are stacked
+    assert spread([(0.3, 0.5), (0.35, 0.5), (0.42, 0.45)], 0.1, 0.1) == pytest.approx([0.4833333, 0.5833333, 0.3833333])
+    with pytest.raises(ValueError, match="width and height"):
+        spread([(0.5, 0.5)], 0.0, 0.1)
+
+
+def test_plot_of_several_folders(plot_curves, two_runs, tmp_path):
+    """Runs from two folders go on one figure; a seed of one algo in both, or two envs, is refused."""
+    out, _ = two_runs
+    first, second = tmp_path / "a", tmp_path / "b"
+    first.mkdir(), second.mkdir()
+    shutil.copy(out / "ppo_gocu_seed0.csv", first / "ppo_gocu_seed0.csv")
+    shutil.copy(out / "ppo_seed0.csv", second / "ppo_seed1.csv")  # as if seed 1 had run elsewhere
+    runs = plot_curves.load_folders([first, second], "mean_return")
+    assert {algo: sorted(seeds) for algo, seeds in runs.items()} == {"ppo_gocu": [0], "ppo": [1]}
+    png = plot_curves.main([str(first), str(second), "--per-seed"])
+    assert png == first / "curves.png" and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    shutil.copy(out / "ppo_gocu_seed0.csv", second / "ppo_gocu_seed0.csv")
+    with pytest.raises(SystemExit, match="ppo_gocu seed 0 is in both"):
+        plot_curves.plot([first, second])
+    (second / "ppo_gocu_seed0.csv").unlink()
+    (first / "summary.md").write_text("# Sample efficiency: GoCu/DoorKey-5x5-v0\n")
+    (second / "summary.md").write_text("# Sample efficiency: GoCu/DoorKey-8x8-v0\n")
+    with pytest.raises(SystemExit, match="different envs"):
+        plot_curves.plot([first, second])
+
+
 def test_plot_names_the_env_of_a_results_folder(plot_curves, two_runs, tmp_path):
     """A folder copied to benchmarks/results keeps summary.md but not the checkpoints: the env id comes from the
     summary's heading, and a heading without an id (the run's env not recorded) gives none."""

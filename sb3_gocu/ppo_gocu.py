@@ -85,11 +85,12 @@ class PPO_GoCu(PPO):
         steps queued behind a curiosity update, ``queue_during_update``), so a callback reading them in ``on_step``
         sees those of an earlier step. Used when the training env has one
         :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``)
-    :param switch_interval: the interpreter's GIL switch interval in seconds (``sys.setswitchinterval``) while a
-        rollout scores in the worker thread, and while PPO's update runs beside a curiosity update
-        (``overlap_ppo_update``), restored afterwards; ``None`` leaves it alone. At
-        Python's 5 ms, the rollout thread often waits for the GIL to come back from the worker after a numpy or
-        torch call; at 0.5 ms it gets it back sooner (measured on DoorKey-8x8, README "Throughput"). Does not
+    :param switch_interval: the interpreter's GIL switch interval in seconds (``sys.setswitchinterval``) during
+        each rollout with ``async_scoring`` (whether the worker is a thread or a process: the process's message
+        writer and a curiosity update still running are threads of this interpreter), and while PPO's update runs
+        beside a curiosity update (``overlap_ppo_update``), restored afterwards; ``None`` leaves it alone. At
+        Python's 5 ms, the rollout thread often waits for the GIL to come back from a worker thread after a numpy
+        or torch call; at 0.5 ms it gets it back sooner (measured on DoorKey-8x8, README "Throughput"). Does not
         change any value computed
     :param scoring_lag: (``async_scoring``) how many steps later a step's r_gc is collected: up to this many
         steps are scored in the worker while the envs step on (>= 1). The number of states new to their

@@ -810,7 +810,8 @@ def test_state_dict_takes_the_scores_in_flight_first():
 
 @pytest.mark.parametrize("async_scoring", [True, False])
 def test_switch_interval_holds_during_an_async_rollout_only(async_scoring):
-    """The GIL switch interval is PPO_GoCu's while the worker thread scores, and the interpreter's again after."""
+    """The GIL switch interval is PPO_GoCu's during a rollout with async_scoring (a worker thread or process alike),
+    and the interpreter's again after."""
     import sys
 
     before = sys.getswitchinterval()

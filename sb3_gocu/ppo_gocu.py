@@ -142,8 +142,12 @@ class PPO_GoCu(PPO):
         if not (is_number(intrinsic_coef) and intrinsic_coef >= 0):
             raise ValueError(f"intrinsic_coef (sigma) must be a number >= 0, got {intrinsic_coef!r}")
         self.intrinsic_coef = intrinsic_coef
-        self.intrinsic_episodic = intrinsic_episodic
-        self.async_scoring = async_scoring
+        if not is_flag(intrinsic_episodic):
+            raise ValueError(f"intrinsic_episodic must be True or False, got {intrinsic_episodic!r}")
+        self.intrinsic_episodic = bool(intrinsic_episodic)
+        if not is_flag(async_scoring):
+            raise ValueError(f"async_scoring must be True or False, got {async_scoring!r}")
+        self.async_scoring = bool(async_scoring)
         if curiosity_kwargs is not None and not isinstance(curiosity_kwargs, dict):
             raise TypeError(
                 f"curiosity_kwargs must be a dict of GoalCuriosityModule keywords, got {type(curiosity_kwargs).__name__} "
@@ -171,8 +175,6 @@ class PPO_GoCu(PPO):
                 self.curiosity = module
             elif module is not self.curiosity:
                 # a loaded model brings its own module: the env's wrappers use it from now on
-                from sb3_gocu.wrappers import find_gocu_wrappers
-
                 for wrapper in find_gocu_wrappers(self.env):  # type: ignore[arg-type]
                     wrapper.module = self.curiosity
                 self.curiosity.ensure_envs(self.env.num_envs)  # type: ignore[union-attr]

@@ -150,6 +150,8 @@ def test_module_refuses_invalid_settings(kwargs, match):
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef=float("nan")), r"intrinsic_coef \(sigma\) must be a number >= 0"),
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef="0.25"), r"intrinsic_coef \(sigma\) must be a number >= 0, got '0.25'"),
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), switch_interval=True), r"switch_interval must be None or a number of seconds in \(0, 1\], got True"),
+        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_episodic="yes"), r"intrinsic_episodic must be True or False, got 'yes'"),
+        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), async_scoring=None), r"async_scoring must be True or False, got None"),
         (lambda: GoCuVecEnvWrapper(chain_venv(1), mode="add"), r"mode must be one of \('sum', 'separate'\), got 'add'"),
         (lambda: GoCuWrapper(ChainEnv(), mode="add"), r"mode must be one of \('sum', 'separate'\)"),
         (lambda: GoCuVecEnvWrapper(chain_venv(1), intrinsic_coef=-1.0), r"intrinsic_coef must be a number >= 0, got -1.0"),

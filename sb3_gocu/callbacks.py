@@ -29,6 +29,8 @@ class GoCuCallback(BaseCallback):
 
     def __init__(self, gocu: GoCuVecEnvWrapper | GoCuWrapper | GoalCuriosityModule | None = None, verbose: int = 0) -> None:
         super().__init__(verbose)
+        if gocu is not None and not isinstance(gocu, (GoCuVecEnvWrapper, GoCuWrapper, GoalCuriosityModule)):
+            raise TypeError(f"gocu must be a GoCuVecEnvWrapper, a GoCuWrapper, a GoalCuriosityModule or None, got {type(gocu).__name__}")
         self.module: GoalCuriosityModule | None = gocu if isinstance(gocu, GoalCuriosityModule) or gocu is None else gocu.module
         self.pretrain_time = 0.0
 

@@ -166,6 +166,17 @@ def test_algorithm_and_wrappers_refuse_invalid_settings(make, match):
         make()
 
 
+def test_callback_refuses_what_is_not_a_gocu_wrapper_or_module():
+    """An unwrapped VecEnv handed to GoCuCallback is refused at construction, naming the type."""
+    from sb3_gocu import GoCuCallback
+
+    with pytest.raises(TypeError, match="gocu must be a GoCuVecEnvWrapper, a GoCuWrapper, a GoalCuriosityModule or None, got DummyVecEnv"):
+        GoCuCallback(chain_venv(1))
+    module = GoalCuriosityModule(BOX, **SMALL_CURIOSITY)
+    assert GoCuCallback(module).module is module
+    assert GoCuCallback(GoCuVecEnvWrapper(chain_venv(1), module=module)).module is module
+
+
 def test_numpy_scalars_are_accepted_as_settings():
     """A sweep or a config hands numpy scalars: they pass the type checks and mean their values."""
     module = GoalCuriosityModule(BOX, **{**SMALL_CURIOSITY, "n_goals": np.int64(3), "reward_scale": np.float32(4.0),

@@ -10,6 +10,7 @@ Trains with SB3's progress bar, evaluates the success rate of the trained policy
 from __future__ import annotations
 
 import argparse
+from typing import Sequence
 
 import numpy as np
 from stable_baselines3.common.env_util import make_vec_env
@@ -18,14 +19,15 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from sb3_gocu import PAPER_N_ENVS, PPO_GoCu
 
 
-def main() -> None:
+def main(argv: Sequence[str] | None = None) -> tuple[PPO_GoCu, np.ndarray]:
+    """Train, save and evaluate; returns the model and the evaluation episodes' returns."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="GoCu/DoorKey-5x5-v0")
     parser.add_argument("--timesteps", type=int, default=300_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--save", default="gocu_doorkey5")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     env = make_vec_env(args.env, n_envs=PAPER_N_ENVS, seed=args.seed)  # the paper's 16 envs
     # the defaults are the paper's: PPO's settings (PAPER_PPO_KWARGS: n_steps 128, batch 256, 4 epochs, lr 1e-4,
@@ -39,6 +41,7 @@ def main() -> None:
     returns, _ = evaluate_policy(model, eval_env, n_eval_episodes=args.eval_episodes, deterministic=False, return_episode_rewards=True)
     returns = np.asarray(returns)
     print(f"evaluation over {len(returns)} episodes: success rate {np.mean(returns > 0):.2f}, mean return {returns.mean():.3f}")
+    return model, returns
 
 
 if __name__ == "__main__":

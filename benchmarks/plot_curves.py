@@ -196,7 +196,7 @@ def plot(directory: str | pathlib.Path | Sequence[str | pathlib.Path], out: str 
         what = f"thin: each seed; thick: {what}, where every seed ran"
     # per seed, the longer caption goes on a line of its own (one line would be cut at the figure's edge)
     sep = "\n" if per_seed else ": "
-    ax.set_title(title or f"{env_name(folders[0]) or folders[0].name}{sep}{what}", fontsize=10 if per_seed else None)
+    ax.set_title(title or f"{next(iter(envs), None) or folders[0].name}{sep}{what}", fontsize=10 if per_seed else None)
     ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 0))
     ax.grid(alpha=0.3)
     ax.legend(loc="center right" if per_seed else "upper left")

@@ -66,7 +66,10 @@ class PPO_GoCu(PPO):
     ``batch_size``, ``n_epochs``, ``gamma``, ``gae_lambda``, ``clip_range``, ``ent_coef``, ``vf_coef``, ...); those
     of :data:`PAPER_PPO_KWARGS` default to the paper's values (n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
     gamma 0.99, vf 0.5, clip 0.2) instead of SB3's, the others to SB3's. The paper runs 16 envs
-    (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. Plus:
+    (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. On a
+    CPU, call ``torch.set_num_threads(1)`` first: the scoring process takes the caller's thread count and the
+    curiosity updates run in a thread beside the training, so torch's default of one thread per core oversubscribes
+    the cores (the README's quickstart: 16 min 36 s with 2 threads on 2 cores, 5 min 49 s with 1). Plus:
 
     :param policy: "MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a two-headed policy class
     :param env: an env id, an env, or a VecEnv; without a GoCu wrapper it is wrapped in a

@@ -1,7 +1,7 @@
 """How much predictor training does one update need? Validation loss per epoch for several pair budgets.
 
     python benchmarks/predictor_epochs.py <run>/checkpoints/ppo_gocu_seed0/model_<steps>.zip \\
-        --pairs 1024 2048 4096 8192 --epochs 15 --threads 2 --seed 0
+        --pairs 1024 2048 4096 8192 --epochs 15 --threads 1 --seed 0
 
 Loads a PPO_GoCu checkpoint and replays the predictor update that was due next, on the trajectories the
 module holds (the last P_m steps; with ``--collect STEPS``, on STEPS fresh steps of the checkpoint's own policy
@@ -125,7 +125,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--epochs", type=int, default=15)
     p.add_argument("--val-pairs", type=int, default=8192)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    p.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
     p.add_argument("--collect", type=int, default=0, metavar="STEPS",
                    help="first play the model's policy for STEPS env steps on --env and replay the update on those trajectories "
                         "(default 0: use the trajectories saved in the checkpoint)")

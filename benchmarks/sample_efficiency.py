@@ -554,7 +554,7 @@ def write_summary(args: argparse.Namespace, command: str) -> str:
             *(f"- machine (runs): {m}" for m in machines),
             *([f"- machine (this summary): {here}"] if (here := machine_line(args.threads)) not in machines else []),
             f"- threads: {args.threads} (torch.set_num_threads) in this command; each run's own is the --threads of the "
-            "command that wrote it (default 2). One command executes its runs one after another; separate commands "
+            "command that wrote it (default 1; 2 before 2026-12-02). One command executes its runs one after another; separate commands "
             "may have run side by side.",
             "",
         ]
@@ -572,7 +572,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--timesteps", type=int, default=800_000)
     p.add_argument("--out", default=None, help="output dir (default benchmarks/out/<env name>)")
-    p.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    p.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (1: the scoring process and the updates use the other cores; README, \"Use\")")
     p.add_argument("--checkpoint-freq", type=int, default=100_000, help="env steps between checkpoints (rounded up to rollouts)")
     p.add_argument("--keep-checkpoints", type=int, default=2, help="newest checkpoints kept per run (a PPO_GoCu one is ~90 MB)")
     p.add_argument("--restart", action="store_true", help="discard existing checkpoints of the selected runs")

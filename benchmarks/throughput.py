@@ -1,6 +1,6 @@
 """Throughput of PPO_GoCu against plain PPO, measured in one run, and where PPO_GoCu's time goes.
 
-    python benchmarks/throughput.py --env GoCu/DoorKey-8x8-v0 --timesteps 100000 --threads 2
+    python benchmarks/throughput.py --env GoCu/DoorKey-8x8-v0 --timesteps 100000 --threads 1
 
 Prints, for the same env, step count and PPO settings (SPEC: 16 envs, n_steps 128, batch 256, 4 epochs):
 raw env steps/s with random actions (the ceiling), plain PPO steps/s, PPO_GoCu steps/s (paper settings:
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--env", default="GoCu/DoorKey-8x8-v0")
     parser.add_argument("--timesteps", type=int, default=100_000)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (both agents; every recorded run gives it)")
     parser.add_argument("--order", choices=["ppo-first", "gocu-first"], default="ppo-first")
     parser.add_argument("--malloc", choices=["fixed", "default"], default="fixed",
                         help="fixed: glibc trim/mmap thresholds set once for the process, so no run pays for being first; "

@@ -34,6 +34,8 @@ def _make_module(
 ) -> GoalCuriosityModule:
     if module is None:
         return GoalCuriosityModule(observation_space, **(curiosity_kwargs or {}))
+    if not isinstance(module, GoalCuriosityModule):
+        raise TypeError(f"module must be a GoalCuriosityModule or None, got {type(module).__name__}")
     if curiosity_kwargs:
         raise ValueError("give either `module` or `curiosity_kwargs`, not both")
     if module.observation_space != observation_space:

@@ -166,12 +166,17 @@ def test_algorithm_and_wrappers_refuse_invalid_settings(make, match):
         make()
 
 
-def test_callback_refuses_what_is_not_a_gocu_wrapper_or_module():
-    """An unwrapped VecEnv handed to GoCuCallback is refused at construction, naming the type."""
+def test_callback_and_wrappers_refuse_what_is_not_theirs():
+    """An unwrapped VecEnv handed to GoCuCallback, or a dict handed to a wrapper as its module, is refused at
+    construction, naming the type."""
     from sb3_gocu import GoCuCallback
 
     with pytest.raises(TypeError, match="gocu must be a GoCuVecEnvWrapper, a GoCuWrapper, a GoalCuriosityModule or None, got DummyVecEnv"):
         GoCuCallback(chain_venv(1))
+    with pytest.raises(TypeError, match="module must be a GoalCuriosityModule or None, got dict"):
+        GoCuVecEnvWrapper(chain_venv(1), module={"n_goals": 3})
+    with pytest.raises(TypeError, match="module must be a GoalCuriosityModule or None, got dict"):
+        GoCuWrapper(ChainEnv(), module={"n_goals": 3})
     module = GoalCuriosityModule(BOX, **SMALL_CURIOSITY)
     assert GoCuCallback(module).module is module
     assert GoCuCallback(GoCuVecEnvWrapper(chain_venv(1), module=module)).module is module

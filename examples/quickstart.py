@@ -6,7 +6,7 @@
 Trains with SB3's progress bar, evaluates the success rate of the trained policy, and saves the model
 (curiosity state included) to ``gocu_doorkey5.zip``. It trains with one torch thread (``--threads``): the
 curiosity's scoring process and updates run beside the training thread, and more threads each oversubscribe the
-cores (on a 2-core Intel Xeon: 5 min 49 s with 1, 16 min 36 s with torch's default of 2; README, "Use").
+cores (measured: README, "Use").
 """
 
 from __future__ import annotations

@@ -69,7 +69,7 @@ class PPO_GoCu(PPO):
     (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. On a
     CPU, call ``torch.set_num_threads(1)`` first: the scoring process takes the caller's thread count and the
     curiosity updates run in a thread beside the training, so torch's default of one thread per core oversubscribes
-    the cores (the README's quickstart: 16 min 36 s with 2 threads on 2 cores, 5 min 49 s with 1). Plus:
+    the cores (measured: README, "Use"). Plus:
 
     :param policy: "MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a two-headed policy class
     :param env: an env id, an env, or a VecEnv; without a GoCu wrapper it is wrapped in a

@@ -296,9 +296,8 @@ DEFAULT_NUM_THREADS = 1
 def with_default_threads(argv: list[str]) -> list[str]:
     """``argv`` (without the program name) with ``--num-threads 1`` appended when it gives no ``--num-threads``.
     PPO_GoCu's scoring process takes the caller's thread count and its updates run in a thread beside the
-    training, so with torch's default of one thread per core each of them oversubscribes the cores: the
-    quickstart's 300k DoorKey-5x5 steps took 16 min 36 s with 2 threads on a 2-core machine against about 6 min
-    with 1 (README, "Use"). Plain PPO through this launcher gets the same setting, so the two compare alike."""
+    training, so torch's default of one thread per core oversubscribes the cores (measured: README, "Use"). Plain
+    PPO through this launcher gets the same setting, so the two compare alike."""
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--num-threads", type=int, default=None)
     known, _ = parser.parse_known_args(argv)

@@ -16,7 +16,7 @@ import torch as th
 from stable_baselines3.common.buffers import DictRolloutBuffer, RolloutBuffer
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_gocu.curiosity.checks import is_number
+from sb3_gocu.curiosity.checks import check_intrinsic_coef, is_number
 
 
 def compute_gae(
@@ -65,10 +65,8 @@ class _TwoStreams:
     def _init_streams(self, intrinsic_gamma: float, intrinsic_coef: float, intrinsic_episodic: bool) -> None:
         if not (is_number(intrinsic_gamma) and 0 <= intrinsic_gamma <= 1):
             raise ValueError(f"intrinsic_gamma must be in [0, 1], got {intrinsic_gamma!r}")
-        if not (is_number(intrinsic_coef) and intrinsic_coef >= 0):
-            raise ValueError(f"intrinsic_coef (sigma) must be a number >= 0, got {intrinsic_coef!r}")
         self.intrinsic_gamma = intrinsic_gamma
-        self.intrinsic_coef = intrinsic_coef
+        self.intrinsic_coef = check_intrinsic_coef(intrinsic_coef)
         self.intrinsic_episodic = intrinsic_episodic
 
     def reset(self) -> None:

@@ -48,18 +48,16 @@ class GoCuCallback(BaseCallback):
 
     def _on_training_start(self) -> None:
         assert self.module is not None
+        self.module.recording = True
         if not self.module.pretrained:
-            self.module.recording = True
-            self._pretrain()  # its resets begin new episodes: the first observations of learn's own reset are dropped
-        else:
-            self.module.start_recording()  # records the first observations of learn's own reset (record_start_states)
+            self._pretrain()
 
     def _pretrain(self) -> None:
         """Random-policy observations -> VAE pretraining and first goals (Alg. 1, lines 1-2)."""
         assert self.module is not None
         t0 = time.perf_counter()
         env = self.training_env
-        n_steps = -(-self.module.pretrain_steps // env.num_envs)
+        n_steps = -(-self.module.config.pretrain_steps // env.num_envs)
         if n_steps > 0:
             env.reset()
             for _ in range(n_steps):
@@ -72,7 +70,7 @@ class GoCuCallback(BaseCallback):
         self.model._last_obs = env.reset()  # type: ignore[assignment]
         self.model._last_episode_starts = np.ones((env.num_envs,), dtype=bool)
         self.module.add_finished_episode_goals()
-        self.module.collect_all()  # the first observations of the reset (record_start_states), scored with the goals before
+        self.module.collect_all()
         self.module.sample_goals(np.arange(self.module.n_envs))
         self.pretrain_time = time.perf_counter() - t0
         if self.verbose:
@@ -84,6 +82,10 @@ class GoCuCallback(BaseCallback):
 
     def _on_step(self) -> bool:
         return True
+
+    def _on_rollout_start(self) -> None:
+        assert self.module is not None
+        self.module.finish_updates()  # the update started at the last rollout's end, taken into use before any step
 
     def _on_rollout_end(self) -> None:
         assert self.module is not None

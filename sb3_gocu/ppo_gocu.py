@@ -23,7 +23,6 @@ import io
 import json
 import pathlib
 import pickle
-import sys
 import zipfile
 from collections import deque
 from types import MappingProxyType
@@ -44,7 +43,7 @@ from sb3_gocu.buffers import GoCuDictRolloutBuffer, GoCuRolloutBuffer
 from sb3_gocu.callbacks import GoCuCallback
 from sb3_gocu.checkpoints import GlobalRNGState, check_model_file, read_env_state, save_model
 from sb3_gocu.curiosity import GoalCuriosityModule
-from sb3_gocu.curiosity.checks import is_flag, is_integer, is_number
+from sb3_gocu.curiosity.checks import DEFAULT_INTRINSIC_COEF, check_intrinsic_coef, is_flag, is_integer
 from sb3_gocu.policies import GoCuActorCriticCnnPolicy, GoCuActorCriticPolicy, GoCuMultiInputActorCriticPolicy
 from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module, find_gocu_wrappers
 
@@ -88,13 +87,6 @@ class PPO_GoCu(PPO):
         steps queued behind a curiosity update, ``queue_during_update``), so a callback reading them in ``on_step``
         sees those of an earlier step. Used when the training env has one
         :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``)
-    :param switch_interval: the interpreter's GIL switch interval in seconds (``sys.setswitchinterval``) during
-        each rollout with ``async_scoring`` (whether the worker is a thread or a process: the process's message
-        writer and a curiosity update still running are threads of this interpreter), and while PPO's update runs
-        beside a curiosity update (``overlap_ppo_update``), restored afterwards; ``None`` leaves it alone. At
-        Python's 5 ms, the rollout thread often waits for the GIL to come back from a worker thread after a numpy
-        or torch call; at 0.5 ms it gets it back sooner (measured on DoorKey-8x8, README "Throughput"). Does not
-        change any value computed
     :param scoring_lag: (``async_scoring``) how many steps later a step's r_gc is collected: up to this many
         steps are scored in the worker while the envs step on (>= 1). The number of states new to their
         episode varies from step to step, so a deeper queue lets the worker catch up after a step with many
@@ -124,11 +116,10 @@ class PPO_GoCu(PPO):
         policy: str | type[GoCuActorCriticPolicy],
         env: GymEnv | str,
         *args: Any,
-        intrinsic_coef: float = 0.25,
+        intrinsic_coef: float = DEFAULT_INTRINSIC_COEF,
         intrinsic_episodic: bool = False,
         curiosity_kwargs: dict[str, Any] | None = None,
         async_scoring: bool = True,
-        switch_interval: float | None = 5e-4,
         scoring_lag: int = 4,
         spill_scoring: bool = True,
         **kwargs: Any,
@@ -139,12 +130,7 @@ class PPO_GoCu(PPO):
         if not is_flag(spill_scoring):
             raise ValueError(f"spill_scoring must be True or False, got {spill_scoring!r}")
         self.spill_scoring = bool(spill_scoring)
-        if switch_interval is not None and not (is_number(switch_interval) and 0 < switch_interval <= 1):
-            raise ValueError(f"switch_interval must be None or a number of seconds in (0, 1], got {switch_interval!r}")
-        self.switch_interval = switch_interval
-        if not (is_number(intrinsic_coef) and intrinsic_coef >= 0):
-            raise ValueError(f"intrinsic_coef (sigma) must be a number >= 0, got {intrinsic_coef!r}")
-        self.intrinsic_coef = intrinsic_coef
+        self.intrinsic_coef = check_intrinsic_coef(intrinsic_coef)
         if not is_flag(intrinsic_episodic):
             raise ValueError(f"intrinsic_episodic must be True or False, got {intrinsic_episodic!r}")
         self.intrinsic_episodic = bool(intrinsic_episodic)
@@ -183,7 +169,12 @@ class PPO_GoCu(PPO):
                 self.curiosity.ensure_envs(self.env.num_envs)  # type: ignore[union-attr]
             return
         if self.curiosity is None:
-            self.curiosity = GoalCuriosityModule(self.observation_space, **{"seed": self.seed, **self.curiosity_kwargs})
+            given = self.curiosity_kwargs.get("device")
+            if given is not None and th.device(given) != th.device(self.device):
+                raise ValueError(f"curiosity_kwargs['device']={given!r} differs from the model's device {self.device}: "
+                                 "the curiosity module follows the model's device (give device= to PPO_GoCu)")
+            kwargs = {"seed": self.seed, **self.curiosity_kwargs, "device": self.device}
+            self.curiosity = GoalCuriosityModule(self.observation_space, **kwargs)
         if self.env is not None:
             self.env = GoCuVecEnvWrapper(self.env, module=self.curiosity, mode="separate")
 
@@ -273,21 +264,6 @@ class PPO_GoCu(PPO):
             model.set_env(read_env_state(path, model.curiosity), force_reset=False)
         return model
 
-    # ------------------------------------------------------------------ update
-    def train(self) -> None:
-        """PPO's update. While a curiosity update runs beside it in the module's thread (``overlap_ppo_update``),
-        at ``switch_interval``: that thread needs the GIL back after every tensor operation, and PPO's minibatch
-        loop holds it for Python's 5 ms by default."""
-        switch_interval = getattr(self, "switch_interval", None)
-        if switch_interval is None or self.curiosity is None or not self.curiosity.update_running:
-            return super().train()
-        previous = sys.getswitchinterval()
-        sys.setswitchinterval(switch_interval)
-        try:
-            super().train()
-        finally:
-            sys.setswitchinterval(previous)
-
     # ------------------------------------------------------------------ rollout
     def collect_rollouts(
         self,
@@ -311,12 +287,9 @@ class PPO_GoCu(PPO):
         callback.on_rollout_start()
         gocu = self._deferring_wrapper(env)
         waiting: deque[tuple[tuple, int | None]] = deque()  # steps whose r_gc is still being scored: (deferred, buffer row)
-        switch_interval = sys.getswitchinterval()
         if gocu is not None:
             gocu.defer = True
-            gocu.module.scoring_spill = max(1, self.scoring_lag - 1) if getattr(self, "spill_scoring", True) else None
-            if getattr(self, "switch_interval", None) is not None:
-                sys.setswitchinterval(self.switch_interval)
+            gocu.module.scorer.spill = max(1, self.scoring_lag - 1) if getattr(self, "spill_scoring", True) else None
         try:
             while n_steps < n_rollout_steps:
                 if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
@@ -338,9 +311,7 @@ class PPO_GoCu(PPO):
                 if gocu is not None:
                     waiting.append((gocu.deferred, None))
                     gocu.deferred = None
-                    # a step queued behind a curiosity update (queue_during_update) is taken when the update is
-                    # done, or at the rollout's end: the envs step on meanwhile
-                    while len(waiting) > self.scoring_lag and not gocu.queued(waiting[0][0]):
+                    while len(waiting) > self.scoring_lag:
                         self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
                     intrinsic = np.zeros(env.num_envs, dtype=np.float32)
                 else:
@@ -383,8 +354,7 @@ class PPO_GoCu(PPO):
                 while waiting:
                     self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
                 gocu.defer = False
-                gocu.module.scoring_spill = None
-                sys.setswitchinterval(switch_interval)
+                gocu.module.scorer.spill = None
 
         with th.no_grad():
             values = self.policy.predict_values(obs_as_tensor(new_obs, self.device))  # type: ignore[arg-type]
@@ -419,7 +389,7 @@ class PPO_GoCu(PPO):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfPPOGoCu:
-        if self.curiosity is not None and self.curiosity.scoring_process and self.env is not None and self._deferring_wrapper(self.env) is not None:
+        if self.curiosity is not None and self.curiosity.scorer.use_process and self.env is not None and self._deferring_wrapper(self.env) is not None:
             self.curiosity.start_scoring_process()  # starts beside pretraining
         if reset_num_timesteps:
             self.global_rng.pending = None

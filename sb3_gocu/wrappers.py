@@ -24,7 +24,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
 from sb3_gocu.curiosity import GoalCuriosityModule
-from sb3_gocu.curiosity.checks import is_number
+from sb3_gocu.curiosity.checks import DEFAULT_INTRINSIC_COEF, check_intrinsic_coef
 
 MODES = ("sum", "separate")
 
@@ -60,11 +60,9 @@ class _RewardReport:
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-        if not (is_number(intrinsic_coef) and intrinsic_coef >= 0):
-            raise ValueError(f"intrinsic_coef must be a number >= 0, got {intrinsic_coef!r}")
         self.module = _make_module(observation_space, module, curiosity_kwargs)
         self.mode = mode
-        self.intrinsic_coef = intrinsic_coef
+        self.intrinsic_coef = check_intrinsic_coef(intrinsic_coef)
 
     def _report(self, info: dict, extrinsic: float, raw: float, normalized: float) -> float:
         """Write the three rewards into ``info`` and return the reward the algorithm sees."""
@@ -81,7 +79,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
     :param module: the curiosity module; default: a new one built from ``curiosity_kwargs`` and the
         env's observation space
     :param mode: ``"sum"`` (reward = r_e + intrinsic_coef * r_gc) or ``"separate"`` (reward = r_e)
-    :param intrinsic_coef: weight of r_gc in the summed reward (``mode="sum"`` only)
+    :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only; 0.25 as PPO_GoCu's)
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
     """
 
@@ -90,20 +88,20 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         venv: VecEnv,
         module: GoalCuriosityModule | None = None,
         mode: str = "sum",
-        intrinsic_coef: float = 1.0,
+        intrinsic_coef: float = DEFAULT_INTRINSIC_COEF,
         curiosity_kwargs: dict[str, Any] | None = None,
     ) -> None:
         VecEnvWrapper.__init__(self, venv)
         self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs)
         self.module.ensure_envs(self.num_envs)
         #: set by PPO_GoCu during its rollouts (``mode="separate"`` only): step_wait hands the scoring to the
-        #: module's worker thread and leaves (ticket, infos, extrinsic rewards) in ``deferred``
+        #: module's worker process and leaves (ticket, infos, extrinsic rewards) in ``deferred``
         self.defer = False
         self.deferred: tuple[Any, list[dict], np.ndarray] | None = None
 
     def reset(self) -> Any:
         obs = self.venv.reset()
-        self.module.begin_episodes(np.arange(self.num_envs), obs)
+        self.module.begin_episodes(np.arange(self.num_envs))
         return obs
 
     def step_wait(self) -> VecEnvStepReturn:
@@ -123,19 +121,13 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
                     for i in done_idx:
                         reached[i] = infos[i]["terminal_observation"]
         if self.defer:
-            # the scoring runs in the module's worker thread; the caller takes it with take_deferred()
-            ticket = self.module.submit(reached, dones, next_observations=obs)
+            # the scoring runs in the module's worker process; the caller takes it with take_deferred()
+            ticket = self.module.submit(reached, dones)
             self.deferred = (ticket, infos, np.asarray(rewards, dtype=np.float32).copy())
             return obs, rewards, dones, infos
-        raw, normalized = self.module.step(reached, dones, next_observations=obs)
+        raw, normalized = self.module.step(reached, dones)
         rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i]) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
-
-    @staticmethod
-    def queued(deferred: tuple[Any, list[dict], np.ndarray]) -> bool:
-        """Whether a step taken with ``defer=True`` still waits in the module's queue behind a running update
-        (``queue_during_update``): taking it now would wait for the update."""
-        return deferred[0].queued is not None
 
     def take_deferred(self, deferred: tuple[Any, list[dict], np.ndarray]) -> np.ndarray:
         """Rewards of a step taken with ``defer=True`` (``mode="separate"``): collects its scores, writes the
@@ -155,7 +147,7 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
     :param env: the environment
     :param module: the curiosity module (default: a new one from ``curiosity_kwargs``)
     :param mode: ``"sum"`` or ``"separate"``, as for :class:`GoCuVecEnvWrapper`
-    :param intrinsic_coef: weight of r_gc in the summed reward (``mode="sum"`` only)
+    :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only; 0.25 as PPO_GoCu's)
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
     """
 
@@ -164,7 +156,7 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
         env: gym.Env,
         module: GoalCuriosityModule | None = None,
         mode: str = "sum",
-        intrinsic_coef: float = 1.0,
+        intrinsic_coef: float = DEFAULT_INTRINSIC_COEF,
         curiosity_kwargs: dict[str, Any] | None = None,
     ) -> None:
         gym.Wrapper.__init__(self, env)
@@ -180,7 +172,7 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict]:
         obs, info = self.env.reset(**kwargs)
-        self.module.begin_episodes(self._index, self._batch(obs))
+        self.module.begin_episodes(self._index)
         return obs, info
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:

@@ -68,8 +68,6 @@ SMALL_CURIOSITY = dict(
     latent_dim=2,
     vae_epochs=1,
     vae_patience=0,  # every VAE update trains (tests compare the weights before and after one)
-    train_in_background=False,  # an update is in use right after the rollout end where it is due
-    overlap_ppo_update=False,  # ... and has run in place (tests inspect the networks right after maybe_train)
     vae_train_freq=512,
     pretrain_steps=64,
     memory_size=256,
@@ -86,8 +84,6 @@ TINY_IMAGE_CURIOSITY = dict(
     predictor_train_freq=512,
     vae_epochs=1,
     vae_patience=0,
-    train_in_background=False,
-    overlap_ppo_update=False,
     pretrain_steps=256,
     memory_size=512,
 )

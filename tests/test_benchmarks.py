@@ -274,21 +274,6 @@ def test_predictor_epochs_probe_replays_the_update_per_budget(two_runs):
     assert again["curves"][64][-1]["val_loss"] == curves[64][-1]["val_loss"]
 
 
-def test_bf16_scoring_compares_both_dtypes_on_a_saved_model(two_runs):
-    bench = load_script("bf16_scoring", "benchmarks/bf16_scoring.py")
-    out, _ = two_runs
-    model = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
-    result = bench.main([
-        "--model", str(model), "--env", "GoCu/DoorKey-5x5-v0", "--n-envs", "2", "--steps", "16", "--calls", "3",
-        "--batch-sizes", "1", "3",
-    ])
-    p = result["precision"]
-    assert p["states"] == 32
-    assert 0 < p["r_diff_max"] < 1e-3 and p["r_diff_mean"] <= p["r_diff_max"]  # raw r_gc lies in [0, 0.1]
-    assert 0 < p["mastery_diff_max"] < 1e-2 and 0.0 <= p["argmax_changed"] <= 1.0
-    assert sorted(result["speed"]) == [1, 3] and all(a > 0 and b > 0 for a, b in result["speed"].values())
-
-
 def test_pixel_weights_cost_times_the_fit_and_both_steps_on_a_saved_models_bank(two_runs):
     bench = load_script("pixel_weights_cost", "benchmarks/pixel_weights_cost.py")
     out, _ = two_runs
@@ -459,67 +444,3 @@ def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_ti
     assert saved["ppo_gocu"]["weights_sha256"] == gocu["weights_sha256"] and saved["command"][1:3] == ["--env", "GoCu/DoorKey-5x5-v0"]
 
 
-def test_update_timeline_rows():
-    """fit_rows on a hand-made timeline: rollouts of 1 s, PPO updates of 0.5 s; a predictor fit that outlasts its PPO
-    update makes the next rollout 0.7 s longer; a job of a predictor and a VAE fit (the VAE's starting after that
-    PPO update ended) belongs to that PPO update and charges its 2 s to the VAE, the job's last fit; the no-op
-    take-into-use calls at rollout ends do not split a job; the pretraining's fit has no rollout."""
-    timeline = load_script("update_timeline", "benchmarks/update_timeline.py")
-    events = [
-        ("vae", 0.0, 3.0),  # pretraining, in place
-        ("rollout", 3.0, 4.0), ("taken_into_use", 4.0, 4.0), ("ppo_update", 4.0, 4.5),
-        ("predictor", 4.0, 5.8), ("rollout", 4.5, 6.2), ("taken_into_use", 5.5, 5.9),
-        ("taken_into_use", 6.2, 6.2), ("ppo_update", 6.2, 6.7),
-        ("rollout", 6.7, 7.7), ("taken_into_use", 7.7, 7.7), ("ppo_update", 7.7, 8.2),
-        ("predictor", 7.7, 8.9), ("vae", 8.9, 11.0), ("rollout", 8.2, 11.2), ("taken_into_use", 9.2, 11.1),
-        ("taken_into_use", 11.2, 11.2), ("ppo_update", 11.2, 11.7), ("rollout", 11.7, 12.7),
-    ]
-    rows, waited, plain = timeline.fit_rows(events)
-    assert plain == 1.0  # median of 1.0, 1.7, 1.0, 3.0, 1.0
-    assert [(r.label, r.start, r.end) for r in rows] == [("vae", 0.0, 3.0), ("predictor", 4.0, 5.8), ("predictor", 7.7, 8.9), ("vae", 8.9, 11.0)]
-    pretrain, pred, pred2, vae = rows
-    assert (pretrain.ppo_end, pretrain.used, pretrain.rollout_end, pretrain.waited) == (None, None, None, None)
-    assert (pred.ppo_end, pred.used, pred.rollout_end) == (4.5, 5.9, 6.2) and pred.waited == pytest.approx(0.7)
-    assert (pred2.ppo_end, pred2.used, pred2.rollout_end, pred2.waited) == (8.2, 11.1, 11.2, None)  # its job's extra time goes to the VAE fit
-    assert (vae.ppo_end, vae.used, vae.rollout_end) == (8.2, 11.1, 11.2) and vae.waited == pytest.approx(2.0)
-    assert waited == pytest.approx({"predictor": 0.7, "vae": 2.0})
-
-
-def test_update_timeline_refuses_a_predictor_lead(monkeypatch):
-    """Its rows would give a lead fit's wait to the wrong rollout, so predictor_lead > 0 is refused before any run."""
-    timeline = load_script("update_timeline", "benchmarks/update_timeline.py")
-    monkeypatch.setattr(sys, "argv", ["update_timeline.py", "--curiosity-kwargs", '{"predictor_lead": 1}'])
-    with pytest.raises(SystemExit, match="predictor_lead must be 0 for this timeline, got 1"):
-        timeline.main()
-
-
-def test_busy_core_times_ppo_updates_beside_each_load():
-    """benchmarks/busy_core.py --work update, tiny: its step is one minibatch step of SB3's PPO.train (the parameters
-    move), it times one idle arm and one busy arm per load, and the thread load stops with its arm."""
-    bench = load_script("busy_core", "benchmarks/busy_core.py")
-    from stable_baselines3.common.env_util import make_vec_env
-
-    threads = th.get_num_threads()
-    try:
-        venv = make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=16, seed=0)
-        venv.reset()
-        model = bench.one_batch_ppo(venv, 0)
-        before = [p.detach().clone() for p in model.policy.parameters()]
-        updates = model._n_updates
-        model.train()
-        assert any(not th.equal(a, b) for a, b in zip(before, model.policy.parameters()))
-        assert model._n_updates == updates + 1  # SB3's train(): one epoch of one batch of 256, one minibatch step
-        assert model.rollout_buffer.buffer_size * venv.num_envs == 256
-        interval = sys.getswitchinterval()
-        rates = bench.main(["--env", "GoCu/DoorKey-5x5-v0", "--work", "update", "--steps", "1", "--repeats", "1",
-                            "--loads", "float32", "predictor-thread", "--switch-interval", "0.0005"])
-        assert sys.getswitchinterval() == interval  # the script's interval is its timings' only
-    finally:
-        th.set_num_threads(threads)
-    assert list(rates) == ["idle", "busy float32", "busy predictor-thread"]
-    assert all(len(r) == 1 and r[0] > 0 for r in rates.values())
-    load = bench.Load("vae-thread")
-    with load:
-        time.sleep(0.2)
-        assert load.thread.is_alive()
-    assert not load.thread.is_alive()

@@ -198,23 +198,23 @@ def test_predictor_pairs_are_deduplicated_with_their_multiplicity_as_weight():
     state = mod.rng.bit_generator.state
     s_all, g_all, d_all = mod.trajectories.sample_pairs(400, 3, mod.rng, first_visit=True)
     mod.rng.bit_generator.state = state
-    job = mod._prepare_predictor()
-    assert job["drawn"] == len(s_all) == 400
+    job = mod.predictor_job()
+    assert job.drawn == len(s_all) == 400
     distinct = {(a, b, c) for a, b, c in zip(s_all[:, 0].tolist(), g_all[:, 0].tolist(), d_all.tolist())}
-    assert len(job["phi_s"]) == len(distinct) < 40  # at most 3 x 3 x 4 triples exist
-    assert job["weights"].mean().item() == pytest.approx(1.0)
+    assert len(job.phi_s) == len(distinct) < 40  # at most 3 x 3 x 4 triples exist
+    assert job.weights.mean().item() == pytest.approx(1.0)
     # weight of each distinct pair = its count in the draw x n_distinct / n_drawn
-    for a, b, c, w in zip(job["phi_s"][:, 0].tolist(), job["phi_g"][:, 0].tolist(), job["dist"].tolist(), job["weights"].tolist()):
+    for a, b, c, w in zip(job.phi_s[:, 0].tolist(), job.phi_g[:, 0].tolist(), job.dist.tolist(), job.weights.tolist()):
         count = int(((s_all[:, 0] == a) & (g_all[:, 0] == b) & (d_all == c)).sum())
         assert w == pytest.approx(count * len(distinct) / 400, rel=1e-6)
     # the weighted mean of any per-pair value over the distinct pairs equals its plain mean over the draw
     f = lambda s, g, d: s * 3 + g * 0.5 - d  # noqa: E731
     full = f(s_all[:, 0], g_all[:, 0], d_all).mean()
-    weighted = (job["weights"] * f(job["phi_s"][:, 0], job["phi_g"][:, 0], job["dist"])).mean()
+    weighted = (job.weights * f(job.phi_s[:, 0], job.phi_g[:, 0], job.dist)).mean()
     assert weighted.item() == pytest.approx(full.item(), rel=1e-5)
     # without de-duplication every drawn pair is kept with weight 1
     plain = GoalCuriosityModule(space, seed=0, predictor_dedupe=False, **kwargs)
     plain.trajectories = mod.trajectories
     plain.rng.bit_generator.state = state
-    job_plain = plain._prepare_predictor()
-    assert len(job_plain["phi_s"]) == 400 and bool((job_plain["weights"] == 1).all())
+    job_plain = plain.predictor_job()
+    assert len(job_plain.phi_s) == 400 and bool((job_plain.weights == 1).all())

@@ -136,12 +136,11 @@ def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():
         PPO_GoCu("MlpPolicy", GoCuVecEnvWrapper(chain_venv(), mode="sum", curiosity_kwargs=SMALL_CURIOSITY))
 
 
-def in_place_and_variant_after_steps(**variant: bool) -> tuple[GoalCuriosityModule, GoalCuriosityModule]:
-    """Two modules with one seed, updates in place and with ``variant`` settings, after the same 160 recorded
-    steps of 2 envs (a predictor and a VAE update due)."""
+def two_modules_after_steps() -> tuple[GoalCuriosityModule, GoalCuriosityModule]:
+    """Two modules with one seed after the same 160 recorded steps of 2 envs (a predictor and a VAE update due)."""
     space = ChainEnv().observation_space
     settings = {**SMALL_CURIOSITY, "vae_train_freq": 256}
-    modules = GoalCuriosityModule(space, **settings, seed=5), GoalCuriosityModule(space, **{**settings, **variant}, seed=5)
+    modules = GoalCuriosityModule(space, **settings, seed=5), GoalCuriosityModule(space, **settings, seed=5)
     rng = np.random.default_rng(0)
     batches = [(rng.random((2, 2)).astype(np.float32), rng.random(2) < 0.1) for _ in range(160)]
     for module in modules:
@@ -149,40 +148,21 @@ def in_place_and_variant_after_steps(**variant: bool) -> tuple[GoalCuriosityModu
     return modules
 
 
-def test_background_updates_train_the_same_networks_one_rollout_later():
-    sync, background = in_place_and_variant_after_steps(train_in_background=True)
-    assert not GoalCuriosityModule(ChainEnv().observation_space).train_in_background, "off by default"
-    out_sync = sync.maybe_train()
-    assert "predictor_loss" in out_sync and "vae_loss" in out_sync
-    out_started = background.maybe_train()
-    assert "predictor_loss" not in out_started, "the update runs in the background"
-    old_fold = background._folded.w_out.clone()
-    assert background._job is not None
-    out_finished = background.finish_background_update()
-    assert out_finished["predictor_loss"] == out_sync["predictor_loss"] and out_finished["vae_loss"] == out_sync["vae_loss"]
-    for name in ("vae", "predictor"):
-        a, b = getattr(sync, name).state_dict(), getattr(background, name).state_dict()
-        assert all(th.equal(a[k], b[k]) for k in a), name
-    assert not th.equal(old_fold, background._folded.w_out), "the new predictor is in use after the finish"
-    obs = np.array([[0.3, 0.09], [0.6, 0.36]], dtype=np.float32)
-    assert np.array_equal(sync.step(obs, np.zeros(2, bool))[0], background.step(obs, np.zeros(2, bool))[0])
-
-
-def test_an_update_overlapping_ppos_is_taken_into_use_before_the_next_step():
-    """overlap_ppo_update: maybe_train starts the update in a thread; the next use of the module waits for it,
-    so the networks and the rewards are those of the in-place update; its statistics come out of the next
-    maybe_train."""
-    in_place, overlap = in_place_and_variant_after_steps(overlap_ppo_update=True)
-    assert GoalCuriosityModule(ChainEnv().observation_space).overlap_ppo_update, "on by default"
-    out_in_place = in_place.maybe_train()
-    assert "predictor_loss" in out_in_place and "vae_loss" in out_in_place
-    old_fold = overlap._folded.w_out.clone()
+def test_an_update_started_at_a_rollout_end_is_the_update_run_in_place():
+    """maybe_train starts the updates due in a thread; finish_updates takes them into use (the networks and rewards
+    those of train_predictor and train_vae run in place, in that order), and their statistics come out of the next
+    maybe_train, once."""
+    in_place, overlap = two_modules_after_steps()
+    in_place.add_finished_episode_goals()
+    out_in_place = {**in_place.train_predictor(), **in_place.train_vae()}
+    old_fold = overlap.mastery(np.zeros((1, 2), np.float32), np.ones((1, 2), np.float32))
     out_started = overlap.maybe_train()
     assert "predictor_loss" not in out_started and overlap.update_running, "the update runs in a thread"
+    assert th.equal(old_fold, overlap.mastery(np.zeros((1, 2), np.float32), np.ones((1, 2), np.float32))), "not in use yet"
+    overlap.finish_updates()
+    assert not overlap.update_running
     obs = np.array([[0.3, 0.09], [0.6, 0.36]], dtype=np.float32)
-    r_in_place, r_overlap = in_place.step(obs, np.zeros(2, bool))[0], overlap.step(obs, np.zeros(2, bool))[0]
-    assert not overlap.update_running and not th.equal(old_fold, overlap._folded.w_out), "in use at the next step"
-    assert np.array_equal(r_in_place, r_overlap)
+    assert np.array_equal(in_place.step(obs, np.zeros(2, bool))[0], overlap.step(obs, np.zeros(2, bool))[0])
     for name in ("vae", "predictor"):
         a, b = getattr(in_place, name).state_dict(), getattr(overlap, name).state_dict()
         assert all(th.equal(a[k], b[k]) for k in a), name
@@ -191,48 +171,27 @@ def test_an_update_overlapping_ppos_is_taken_into_use_before_the_next_step():
     assert "predictor_loss" not in overlap.maybe_train(), "reported once"
 
 
-def threads_seen_by_the_fits(module: GoalCuriosityModule, monkeypatch) -> list[tuple[str, int, int]]:
-    """Record (network, torch threads, thread id) at every minibatch step of the module's VAE and predictor fits."""
-    seen: list[tuple[str, int, int]] = []
-    grads_finite = module._grads_finite
-
-    def spy(network):
-        seen.append(("vae" if network is module.vae else "predictor", th.get_num_threads(), threading.get_ident()))
-        return grads_finite(network)
-
-    monkeypatch.setattr(module, "_grads_finite", spy)
-    return seen
-
-
-@pytest.mark.parametrize("variant, caller, expected", [
-    (dict(), 1, 1),  # by default the caller's count
-    (dict(), 2, 2),
-    (dict(update_threads=2), 1, 2),  # in place
-    (dict(update_threads=2, overlap_ppo_update=True), 1, 2),  # overlapped with PPO's update, then waited for
-    (dict(update_threads=3, train_in_background=True), 1, 3),  # beside the rollout
-    (dict(update_threads=1, overlap_ppo_update=True), 2, 1),
-    (dict(split_updates=False), 1, 1),
-])
-def test_updates_run_with_their_thread_count_and_leave_the_callers_alone(variant, caller, expected, monkeypatch):
-    """update_threads: every minibatch of both fits runs with the stated count, in a worker thread when the
-    update overlaps, and the caller's count is the same after the update as before."""
+@pytest.mark.parametrize("caller", [1, 2])
+def test_updates_run_with_the_callers_thread_count_and_leave_it_alone(caller, monkeypatch):
+    """Every minibatch of both fits runs in the update's thread with the thread count of the caller of maybe_train,
+    and the caller's count is the same after the update as before."""
     th.set_num_threads(caller)
-    _, module = in_place_and_variant_after_steps(**variant)
-    seen = threads_seen_by_the_fits(module, monkeypatch)
-    main = threading.get_ident()
+    _, module = two_modules_after_steps()
+    seen: list[tuple[str, int, int]] = []
+    trainer = module.trainer
+    for name, fit in (("vae", trainer.fit_vae), ("predictor", trainer.fit_predictor)):
+        def spy(job, on_epoch=None, fit=fit, name=name):
+            return fit(job, on_epoch=lambda epoch: seen.append((name, th.get_num_threads(), threading.get_ident())))
+        monkeypatch.setattr(trainer, f"fit_{name}", spy)
     module.maybe_train()
-    assert th.get_num_threads() == caller
-    module.finish_background_update()
-    assert th.get_num_threads() == caller, "the caller's count is restored"
+    module.finish_updates()
+    assert th.get_num_threads() == caller, "the caller's count is left alone"
     assert {name for name, _, _ in seen} == {"vae", "predictor"}
-    assert {n for _, n, _ in seen} == {expected}
-    # an update in place with one torch thread and split_updates runs in a thread of its own (the caller helps it)
-    helped = module.split_updates and expected == 1
-    in_worker = variant.get("overlap_ppo_update") or variant.get("train_in_background") or helped
-    assert {ident == main for _, _, ident in seen} == {not in_worker}
+    assert {n for _, n, _ in seen} == {caller}
+    assert threading.get_ident() not in {ident for _, _, ident in seen}
 
 
-@pytest.mark.parametrize("value", [0, -1, 1.5, True, "2"])
-def test_update_threads_is_checked(value):
-    with pytest.raises(ValueError, match=rf"update_threads must be None or an int >= 1, got {value!r}"):
-        GoalCuriosityModule(ChainEnv().observation_space, **SMALL_CURIOSITY, update_threads=value)
+@pytest.mark.parametrize("name", ["train_in_background", "vae_shards", "scoring_dtype", "overlap_ppo_update"])
+def test_retired_settings_are_refused_by_name(name):
+    with pytest.raises(TypeError, match=rf"\['{name}'\] retired"):
+        GoalCuriosityModule(ChainEnv().observation_space, **SMALL_CURIOSITY, **{name: 1})

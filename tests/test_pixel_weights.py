@@ -104,7 +104,7 @@ def test_bad_pixel_weights_are_refused():
 def module(**kwargs) -> GoalCuriosityModule:
     return GoalCuriosityModule(
         IMAGE_SPACE, n_goals=4, goal_buffer_size=32, predictor_hidden=(32,), embed_dim=16, latent_dim=3,
-        vae_batch_size=16, vae_epochs=2, vae_patience=1, memory_size=64, overlap_ppo_update=False, seed=0, **kwargs
+        vae_batch_size=16, vae_epochs=2, vae_patience=1, memory_size=64, seed=0, **kwargs
     )
 
 
@@ -138,14 +138,14 @@ def fill(m: GoalCuriosityModule) -> np.ndarray:
 def test_a_vae_update_fits_the_weights_to_its_observations_and_trains_on_them():
     weighted, plain = module(vae_pixel_weighting=0.5), module(vae_pixel_weighting=0)
     fill(weighted), fill(plain)
-    job = weighted._prepare_vae(None)
-    data = np.concatenate([job["data"], job["val_data"]])
-    weights = np.concatenate([job["weights"], job["val_weights"]])
+    job = weighted.vae_job()
+    data = np.concatenate([job.data, job.val_data])
+    weights = np.concatenate([job.weights, job.val_weights])
     expected = PixelWeights.fit([(weighted.adapter.to_tensor(data), th.from_numpy(weights))], 0.5)
-    assert th.allclose(job["pixel_weights"].table, expected.table, rtol=1e-6)
+    assert th.allclose(job.pixel_weights.table, expected.table, rtol=1e-6)
     yellow = PixelWeights.colour_ids(th.tensor([250, 220, 10]).view(1, 3, 1, 1) / 255.0).item()
-    assert job["pixel_weights"].table[yellow] > 5 * job["pixel_weights"].table[0], "the rare colour weighs more"
-    assert "pixel_weights" not in plain._prepare_vae(None), "exponent 0 is the paper's loss, unweighted"
+    assert job.pixel_weights.table[yellow] > 5 * job.pixel_weights.table[0], "the rare colour weighs more"
+    assert plain.vae_job().pixel_weights is None, "exponent 0 is the paper's loss, unweighted"
     weighted.train_vae(patience=0)
     plain.train_vae(patience=0)
     assert weighted.stats["vae_loss"] != pytest.approx(plain.stats["vae_loss"], rel=1e-3)

@@ -28,7 +28,11 @@ from sb3_gocu.checkpoints import (
     list_checkpoints,
     remove_stale_temporaries,
 )
+from sb3_gocu.curiosity import episodes, scoring
+from sb3_gocu.curiosity.config import VAE_HOLDOUT
 from sb3_gocu.curiosity.networks import FoldedPredictor, MasteryPredictor
+from sb3_gocu.curiosity.stores import observation_key
+from sb3_gocu.curiosity.training import nonfinite_entries
 
 from conftest import SMALL_CURIOSITY, ChainEnv
 
@@ -118,7 +122,7 @@ BOX = ChainEnv().observation_space
         (dict(label_slope=-0.8), r"label_slope \(b\) must be > 0"),
         (dict(goal_buffer_size=0, n_goals=1), r"goal_buffer_size must be >= 1"),
         (dict(memory_size=0), r"memory_size must be >= 1"),
-        (dict(episode_memory=0), r"episode_memory must be >= 1"),
+        (dict(predictor_hidden=(32, 0)), r"predictor_hidden must be a non-empty sequence of integers >= 1"),
         (dict(predictor_train_freq=0), r"predictor_train_freq must be >= 1"),
         (dict(alpha=float("inf")), r"alpha must be a finite number"),
         (dict(revisit_decay="half"), r"revisit_decay must be one of \('none', 'inverse_sqrt', 'first_visit'\), got 'half'"),
@@ -149,14 +153,13 @@ def test_module_refuses_invalid_settings(kwargs, match):
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef=-0.25), r"intrinsic_coef \(sigma\) must be a number >= 0, got -0.25"),
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef=float("nan")), r"intrinsic_coef \(sigma\) must be a number >= 0"),
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef="0.25"), r"intrinsic_coef \(sigma\) must be a number >= 0, got '0.25'"),
-        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), switch_interval=True), r"switch_interval must be None or a number of seconds in \(0, 1\], got True"),
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_episodic="yes"), r"intrinsic_episodic must be True or False, got 'yes'"),
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), async_scoring=None), r"async_scoring must be True or False, got None"),
         (lambda: GoCuVecEnvWrapper(chain_venv(1), mode="add"), r"mode must be one of \('sum', 'separate'\), got 'add'"),
         (lambda: GoCuWrapper(ChainEnv(), mode="add"), r"mode must be one of \('sum', 'separate'\)"),
-        (lambda: GoCuVecEnvWrapper(chain_venv(1), intrinsic_coef=-1.0), r"intrinsic_coef must be a number >= 0, got -1.0"),
-        (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=-1.0), r"intrinsic_coef must be a number >= 0"),
-        (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=None), r"intrinsic_coef must be a number >= 0, got None"),
+        (lambda: GoCuVecEnvWrapper(chain_venv(1), intrinsic_coef=-1.0), r"intrinsic_coef \(sigma\) must be a number >= 0, got -1.0"),
+        (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=-1.0), r"intrinsic_coef \(sigma\) must be a number >= 0"),
+        (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=None), r"intrinsic_coef \(sigma\) must be a number >= 0, got None"),
         (lambda: GoCuCheckpointCallback(True, "unused"), r"save_freq must be an integer >= 1, got True"),
         (lambda: GoCuCheckpointCallback(128, "unused", keep_last=2.0), r"keep_last must be None or an integer >= 1, got 2.0"),
     ],
@@ -185,8 +188,8 @@ def test_callback_and_wrappers_refuse_what_is_not_theirs():
 def test_numpy_scalars_are_accepted_as_settings():
     """A sweep or a config hands numpy scalars: they pass the type checks and mean their values."""
     module = GoalCuriosityModule(BOX, **{**SMALL_CURIOSITY, "n_goals": np.int64(3), "reward_scale": np.float32(4.0),
-                                        "soft_labels": np.bool_(False), "vae_holdout": np.float64(0.2)})
-    assert (module.n_goals, module.reward_scale, module.soft_labels, module.vae_holdout) == (3, 4.0, False, 0.2)
+                                        "soft_labels": np.bool_(False), "vae_beta": np.float64(0.2)})
+    assert (module.n_goals, module.reward_scale, module.soft_labels, module.vae_beta) == (3, 4.0, False, 0.2)
     model = PPO_GoCu("MlpPolicy", chain_venv(1), n_steps=8, batch_size=8, intrinsic_coef=np.float64(0.5), scoring_lag=np.int64(2),
                      curiosity_kwargs=SMALL_CURIOSITY)
     assert (model.intrinsic_coef, model.scoring_lag) == (0.5, 2)
@@ -309,7 +312,7 @@ def recorded_module(seed=0, steps=80, **kwargs):
 @pytest.mark.parametrize("name", ["vae", "predictor"])
 def test_an_update_that_makes_weights_nonfinite_is_rolled_back(name):
     module = recorded_module(vae_patience=0)  # early stopping would keep the starting weights by itself
-    network, optimizer = getattr(module, name), getattr(module, f"{name}_optimizer")
+    network, optimizer = getattr(module, name), getattr(module.trainer, f"{name}_optimizer")
     before = copy.deepcopy(network.state_dict())
     real_step = optimizer.step
 
@@ -323,7 +326,7 @@ def test_an_update_that_makes_weights_nonfinite_is_rolled_back(name):
         module.train_vae() if name == "vae" else module.train_predictor()
     assert not differences(before, network.state_dict()), "the weights of before the update are back"
     assert module.stats[f"{name}_restored_updates"] == 1
-    assert not module.nonfinite_entries(network.state_dict())
+    assert not nonfinite_entries(network.state_dict())
     raw, _ = module.step(np.random.default_rng(1).random((2, 2)).astype(np.float32), np.zeros(2, bool))
     assert np.isfinite(raw).all()
 
@@ -333,67 +336,66 @@ def scripted_vae_update(losses, patience=1, epochs=6):
     module, its statistics, the weights before the update and after each epoch."""
     module = recorded_module(vae_patience=patience, vae_epochs=epochs)
     script = iter(losses)
-    module._vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
+    module.trainer.vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
     states = [copy.deepcopy(module.vae.state_dict())]
-    job = module._prepare_vae(None)
-    fit = module._fit_vae(**job, on_epoch=lambda epoch: states.append(copy.deepcopy(module.vae.state_dict())))
+    job = module.vae_job()
+    fit = module.trainer.fit_vae(job, on_epoch=lambda epoch: states.append(copy.deepcopy(module.vae.state_dict())))
     return module, fit, states
 
 
 def test_vae_early_stopping_keeps_the_best_epoch():
     # before 10, then 9, 8, 8.5 (no new best: patience 1 stops), 7 never measured
     module, fit, states = scripted_vae_update([10.0, 9.0, 8.0, 8.5, 7.0], patience=1)
-    assert (fit["epochs_run"], fit["best_epoch"], fit["val_loss"], fit["val_loss_start"]) == (3, 2, 8.0, 10.0)
+    assert (fit.epochs_run, fit.best_epoch, fit.val_loss, fit.val_loss_start) == (3, 2, 8.0, 10.0)
     assert len(states) == 4
     assert not differences(states[2], module.vae.state_dict()), "the weights of epoch 2"
     assert differences(states[3], module.vae.state_dict()), "not those of the last epoch run"
     # patience 2 goes on through one more epoch without a new best, and takes epoch 4's
     module, fit, states = scripted_vae_update([10.0, 9.0, 8.0, 8.5, 7.0, 7.5, 7.6], patience=2)
-    assert (fit["epochs_run"], fit["best_epoch"]) == (6, 4)
+    assert (fit.epochs_run, fit.best_epoch) == (6, 4)
     assert not differences(states[4], module.vae.state_dict())
 
 
 def test_vae_update_without_a_better_epoch_changes_nothing():
     module, fit, states = scripted_vae_update([5.0, 6.0, 7.0], patience=1)
-    assert (fit["epochs_run"], fit["best_epoch"]) == (1, 0)
+    assert (fit.epochs_run, fit.best_epoch) == (1, 0)
     assert not differences(states[0], module.vae.state_dict()), "back to the starting weights"
     n_pairs = len(module.trajectories)
     phi_goals = module.goal_buffer.embeddings.clone()
-    encoder = module._encoder
-    out = module._finish_vae(fit)
+    encoder = module.encoder
+    out = module.use_fits([fit])
     assert out["vae_best_epoch"] == 0 and out["vae_epochs_run"] == 1
-    assert module._encoder is encoder and len(module.trajectories) == n_pairs > 0, "embeddings still valid: kept"
+    assert module.encoder is encoder and len(module.trajectories) == n_pairs > 0, "embeddings still valid: kept"
     assert th.equal(module.goal_buffer.embeddings, phi_goals)
     # an update with a better epoch re-embeds and clears the predictor's trajectories
     module, fit, _ = scripted_vae_update([5.0, 4.0, 4.5], patience=1)
     assert len(module.trajectories) > 0
-    module._finish_vae(fit)
+    module.use_fits([fit])
     assert len(module.trajectories) == 0
 
 
 def test_vae_holdout_split_and_patience_zero():
-    module = recorded_module(vae_patience=1, vae_holdout=0.25)
-    distinct = {module._key(x) for x in module.memory.observations[: module.memory.size]}
-    job = module._prepare_vae(None)
-    train = {module._key(x) for x in job["data"]}
-    val = {module._key(x) for x in job["val_data"]}
+    module = recorded_module(vae_patience=1)
+    distinct = {observation_key(x) for x in module.memory.observations[: module.memory.size]}
+    job = module.vae_job()
+    train = {observation_key(x) for x in job.data}
+    val = {observation_key(x) for x in job.val_data}
     assert not train & val and train | val == distinct
-    assert len(val) == round(0.25 * len(distinct))
-    assert np.isclose(job["weights"].sum() + job["val_weights"].sum(), len(distinct), rtol=1e-5)
+    assert len(val) == round(VAE_HOLDOUT * len(distinct)) > 0
+    assert np.isclose(job.weights.sum() + job.val_weights.sum(), len(distinct), rtol=1e-5)
     module = recorded_module(vae_patience=0, vae_epochs=3)
-    job = module._prepare_vae(None)
-    assert "val_data" not in job and len(job["data"]) == len(distinct)
-    fit = module._fit_vae(**job)
-    assert fit["epochs_run"] == fit["best_epoch"] == 3
+    job = module.vae_job()
+    assert job.val_data is None and len(job.data) == len(distinct)
+    fit = module.trainer.fit_vae(job)
+    assert fit.epochs_run == fit.best_epoch == 3
 
 
-@pytest.mark.parametrize("pretrain_kwargs", [dict(vae_pretrain_patience=0), dict()], ids=["explicit", "default"])
-def test_pretraining_has_its_own_patience(pretrain_kwargs):
-    """vae_pretrain_patience=0 (the default): the pretraining runs every epoch on the whole bank (no held-out loss
-    measured), and the updates after it stop early with vae_patience."""
-    module = recorded_module(vae_patience=1, vae_epochs=4, **pretrain_kwargs)
+def test_pretraining_runs_every_epoch():
+    """The pretraining runs every epoch on the whole bank (no held-out loss measured), and the updates after it stop
+    early with vae_patience."""
+    module = recorded_module(vae_patience=1, vae_epochs=4)
     script = iter([10.0, 11.0, 12.0])
-    module._vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
+    module.trainer.vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
     out = module.pretrain()
     assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (4, 4) and module.pretrained
     assert next(script) == 10.0, "no held-out loss measured in the pretraining"
@@ -402,23 +404,9 @@ def test_pretraining_has_its_own_patience(pretrain_kwargs):
     assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (1, 0), "the later update: patience 1"
 
 
-def test_pretraining_follows_vae_patience_when_none():
-    """vae_pretrain_patience=None: the pretraining stops early with vae_patience, as the later updates do."""
-    module = recorded_module(vae_patience=1, vae_pretrain_patience=None, vae_epochs=4)
-    assert module.vae_pretrain_patience == 1
-    script = iter([10.0, 11.0, 12.0])
-    module._vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
-    out = module.pretrain()
-    assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (1, 0)
-
-
 @pytest.mark.parametrize("kwargs, message", [
-    (dict(vae_pretrain_patience=-1), r"vae_pretrain_patience must be None or an integer >= 0, got -1"),
-    (dict(vae_pretrain_patience=True), r"vae_pretrain_patience must be None or an integer >= 0, got True"),
     (dict(vae_patience=-1), r"vae_patience must be >= 0, got -1"),
     (dict(vae_patience=1.5), r"vae_patience must be an integer"),
-    (dict(vae_holdout=0.0), r"vae_holdout must be in \(0, 0.5\], got 0.0"),
-    (dict(vae_holdout=0.6), r"vae_holdout must be in \(0, 0.5\], got 0.6"),
 ])
 def test_vae_early_stopping_settings_are_checked(kwargs, message):
     with pytest.raises(ValueError, match=message):
@@ -441,9 +429,10 @@ def test_a_nan_weight_set_by_hand_is_loud_not_silent(tmp_path):
     module = recorded_module()
     with th.no_grad():
         module.vae.encoder[0].weight[0, 0] = float("nan")
-    module._sync_encoder()  # inference embeds with a copy of the VAE taken after each update
+    with th.no_grad():  # inference embeds with a copy of the VAE taken after each update: broken too
+        module.encoder.encoder[0].weight[0, 0] = float("nan")
     module.begin_episodes(np.arange(2))  # both envs have goals: their rewards go through the broken VAE
-    assert module._has_goals.all()
+    assert module.episodes.has_goals.all()
     raw, normalized = module.step(np.full((2, 2), 0.3, np.float32), np.zeros(2, bool))
     assert np.array_equal(raw, [0, 0]) and np.isfinite(normalized).all(), "no NaN bonus, the reward is 0"
     assert module.stats["nonfinite_rewards"] == 2
@@ -618,27 +607,26 @@ def test_two_runs_with_one_seed_give_identical_updates_and_rewards():
     assert differences(parameters(a), parameters(c)), "another seed gives another run"
 
 
-@pytest.mark.parametrize("process", [True, False], ids=["scoring_process", "scoring_thread"])
-def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit(process):
-    """overlap_ppo_update (the default) runs the curiosity updates in a thread while PPO updates the policy
-    (whichever worker scores): the same policy, module and rewards as running them in place, bit for bit."""
-    runs, overlapped, jobs = [], [], []
-    for overlap in (True, False):
-        curiosity = dict(predictor_train_freq=128, vae_train_freq=256, overlap_ppo_update=overlap, scoring_process=process)
-        model = small_model(curiosity=curiosity)
-        train = model.train
+def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit():
+    """The curiosity updates due at a rollout's end run in a thread while PPO updates the policy, and are taken into
+    use at the next rollout's start: the same policy, module and rewards as taking them into use at once, bit for bit."""
+    runs, overlapped = [], []
+    for in_place in (False, True):
+        model = small_model(curiosity=dict(predictor_train_freq=128, vae_train_freq=256))
+        module, train = model.curiosity, model.train
+        if in_place:
+            maybe_train = module.maybe_train
+            module.maybe_train = lambda maybe_train=maybe_train, module=module: {**maybe_train(), **module.finish_updates()}
 
-        def spy(train=train, model=model):
-            overlapped.append(model.curiosity.update_running)
-            jobs.append(type(model.curiosity._job).__name__)
+        def spy(train=train, module=module):
+            overlapped.append(module.update_running)
             train()
 
         model.train = spy
         model.learn(512)  # 8 rollouts: 4 predictor updates, 2 VAE updates
         runs.append(model)
     a, b = runs
-    assert overlapped[:8].count(True) == 4 and not any(overlapped[8:]), "updates ran beside PPO's with overlap only"
-    assert {j for j, o in zip(jobs, overlapped) if o} == {"FitThread"}
+    assert overlapped[:8].count(True) == 4 and not any(overlapped[8:]), "updates ran beside PPO's, unless taken at once"
     assert a.curiosity.stats["predictor_pairs"] > 0 and a.curiosity.time_vae > 0
     assert not differences(parameters(a), parameters(b))
     assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())
@@ -654,11 +642,12 @@ def test_module_initial_weights_depend_on_its_seed_alone():
 
 
 # ============================================================================================ 6. bounded memory
-def test_stores_stay_at_their_capacities():
-    caps = dict(goal_buffer_size=6, n_goals=3, memory_size=20, predictor_train_freq=40, max_distance=3, episode_memory=10,
+def test_stores_stay_at_their_capacities(monkeypatch):
+    monkeypatch.setattr(episodes, "EPISODE_MEMORY", 10)
+    monkeypatch.setattr(scoring, "PHI_MEMO_SIZE", 50)
+    caps = dict(goal_buffer_size=6, n_goals=3, memory_size=20, predictor_train_freq=40, max_distance=3,
                 vae_train_freq=200, new_goals_per_episode=3, goal_novelty=0.0)
     module = GoalCuriosityModule(BOX, **{**SMALL_CURIOSITY, **caps}, seed=0)
-    module.embedding_cache_size = 50
     module.recording = True
     n_envs, rng = 4, np.random.default_rng(0)
     module.ensure_envs(n_envs)
@@ -669,11 +658,12 @@ def test_stores_stay_at_their_capacities():
         if t == 0:
             first = sizes()
         if t % 64 == 63:
+            module.finish_updates()
             module.maybe_train()
         assert module.goal_buffer.size <= 6 and module.memory.size <= 20
         assert len(module.trajectories) <= module.trajectories.capacity * n_envs <= max(40, 2 * 3 * n_envs)
-        assert all(len(c) <= 10 for c in module._reward_cache) and all(len(e) <= 10 for e in module._episodes)
-        assert len(module._phi_cache) <= 50 and len(module.finished_episodes) <= 1024
+        assert all(len(c) <= 10 for c in module.episodes.rewards) and all(len(e) <= 10 for e in module.episodes.states)
+        assert len(module.scorer.phi_memo) <= 50 and len(module.episodes.finished) <= 1024
     assert sizes() == first, "no store grew"
     assert module.goal_buffer.size == 6 and module.goal_buffer.n_added > 6, "the goal buffer filled and replaced goals"
     assert module.memory.size == 20 and module.n_recorded_steps == 1500 * n_envs
@@ -753,8 +743,8 @@ def test_a_loaded_module_gives_the_same_rewards_bit_for_bit(tmp_path, decay):
 
 
 @pytest.mark.parametrize("lag", [1, 3])
-def test_scoring_in_a_worker_thread_gives_the_same_rewards_and_state_bit_for_bit(lag):
-    """submit()/collect() with the scoring in a worker thread, taken ``lag`` steps later, against step(): the
+def test_scoring_in_the_worker_process_gives_the_same_rewards_and_state_bit_for_bit(lag):
+    """submit()/collect() with the scoring in the worker process, taken ``lag`` steps later, against step(): the
     same rewards, and the same module state once everything is collected (memo, counts, normaliser, stores)."""
     space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
     sync = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0, revisit_decay="inverse_sqrt")
@@ -780,39 +770,11 @@ def test_scoring_in_a_worker_thread_gives_the_same_rewards_and_state_bit_for_bit
     assert any(len(t.pending) for t in tickets), "no state was seen again while its score was in flight"
     assert any(t.future is not None for t in tickets), "nothing was scored in the worker"
     assert any(len(t.phi_from) for t in tickets), "no phi was taken from a ticket still embedding it"
-    assert all(isinstance(v, th.Tensor) for v in deferred._phi_cache.values())  # all embeddings landed in the memo
+    assert all(isinstance(v, th.Tensor) for v in deferred.scorer.phi_memo.values())  # all embeddings landed in the memo
     for (r1, n1), (r2, n2) in zip(expected, got):
         assert np.array_equal(r1, r2) and np.array_equal(n1, n2)
     assert deferred.collect(tickets[0]) is got[0]  # taking a ticket twice gives the same arrays
     assert not differences(sync.state_dict(), deferred.state_dict())
-
-
-def test_waiting_for_the_worker_is_timed_as_part_of_inference(monkeypatch):
-    """time_scoring_wait is the caller's wait in collect() for a worker still scoring: a worker held up 50 ms
-    is waited for about that long, and the wait is inside time_inference; synchronous steps wait for nothing."""
-    import time
-
-    space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
-    module = GoalCuriosityModule(space, **SMALL_CURIOSITY, scoring_process=False, seed=0)  # the worker thread
-    frames = np.random.default_rng(2).integers(0, 256, (3, 2, 16, 16, 3), dtype=np.uint8)
-    module.step(frames[0], np.zeros(2, bool))
-    assert module.time_scoring_wait == 0.0
-    import sb3_gocu.curiosity.module as module_file
-
-    score_rows = module_file.score_rows
-
-    def slow(*args):  # the worker's scoring, held up
-        time.sleep(0.05)
-        return score_rows(*args)
-
-    monkeypatch.setattr(module_file, "score_rows", slow)
-    before = module.time_inference
-    ticket = module.submit(frames[1], np.zeros(2, bool))
-    assert ticket.future is not None
-    module.collect(ticket)
-    assert 0.03 <= module.time_scoring_wait <= module.time_inference - before
-    # the worker slept: its wall time counts the 50 ms, its CPU time does not
-    assert module.time_inference_background >= 0.05 > module.cpu_inference_background >= 0.0
 
 
 def test_state_dict_takes_the_scores_in_flight_first():
@@ -822,52 +784,12 @@ def test_state_dict_takes_the_scores_in_flight_first():
     frames = np.random.default_rng(1).integers(0, 256, (4, 2, 16, 16, 3), dtype=np.uint8)
     tickets = [module.submit(f, np.zeros(2, bool)) for f in frames]
     module.state_dict()
-    assert all(t.result is not None for t in tickets) and not module._outstanding
+    assert all(t.result is not None for t in tickets) and not module.scorer.outstanding
     assert module.pop_reward_stats()["reward_mean"] == pytest.approx(float(np.mean([t.result[0] for t in tickets])))
 
 
-@pytest.mark.parametrize("async_scoring", [True, False])
-def test_switch_interval_holds_during_an_async_rollout_only(async_scoring):
-    """The GIL switch interval is PPO_GoCu's during a rollout with async_scoring (a worker thread or process alike),
-    and the interpreter's again after."""
-    import sys
-
-    before = sys.getswitchinterval()
-    during = []
-
-    class Probe(BaseCallback):
-        def _on_step(self):
-            during.append(sys.getswitchinterval())
-            return True
-
-    model = small_model(async_scoring=async_scoring, switch_interval=2e-4)
-    model.learn(64, callback=Probe())
-    assert during and all(v == pytest.approx(2e-4 if async_scoring else before, rel=1e-6) for v in during)
-    assert sys.getswitchinterval() == before
-    for bad in (0, -1e-3, 2.0, "fast"):
-        with pytest.raises(ValueError, match="switch_interval"):
-            small_model(switch_interval=bad)
-
-
-def test_switch_interval_holds_during_a_ppo_update_beside_a_curiosity_update(monkeypatch):
-    """With overlap_ppo_update, PPO's update runs at PPO_GoCu's switch interval while the curiosity update runs
-    beside it, and at the interpreter's otherwise."""
-    import sys
-
-    from stable_baselines3 import PPO
-
-    before, seen = sys.getswitchinterval(), []
-    model = small_model(curiosity=dict(predictor_train_freq=256, overlap_ppo_update=True), switch_interval=2e-4)
-    original = PPO.train
-    monkeypatch.setattr(PPO, "train", lambda self: (seen.append((self.curiosity.update_running, sys.getswitchinterval())), original(self))[1])
-    model.learn(512)
-    assert {running for running, _ in seen} == {True, False}
-    assert all(v == pytest.approx(2e-4 if running else before, rel=1e-6) for running, v in seen)
-    assert sys.getswitchinterval() == before
-
-
 @pytest.mark.parametrize("episodic", [False, True])
-def test_ppo_gocu_scoring_in_a_worker_thread_matches_the_synchronous_run(episodic):
+def test_ppo_gocu_scoring_in_the_worker_process_matches_the_synchronous_run(episodic):
     """async_scoring (r_gc scored while the envs take the next step) against the synchronous rollout: the same
     buffer rewards, policy and module, bit for bit; infos carry the same gocu_* entries once the rollout ends."""
     runs, seen = [], []
@@ -879,7 +801,7 @@ def test_ppo_gocu_scoring_in_a_worker_thread_matches_the_synchronous_run(episodi
 
     for async_scoring in (True, False):
         th.manual_seed(0)
-        curiosity = dict(predictor_train_freq=128, scoring_process=False)  # the process: tests/test_scoring_process.py
+        curiosity = dict(predictor_train_freq=128)
         model = small_model(curiosity=curiosity, async_scoring=async_scoring, intrinsic_episodic=episodic)
         model.env.envs[0].unwrapped.max_steps = 7  # truncations: the episodic stream bootstraps its head
         cb = Infos()

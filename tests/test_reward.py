@@ -66,38 +66,6 @@ def test_folded_predictor_equals_eval_module():
     assert th.allclose(fast, slow, atol=1e-6)
 
 
-def test_bfloat16_folded_predictor_rounds_only_the_hidden_layers():
-    """bfloat16 folding: the first layer's halves stay float32 (goal halves are shared with float32 code) and the
-    mastery is within bfloat16 rounding of float32's, with its own low bits (the cast really happens)."""
-    th.manual_seed(0)
-    p = MasteryPredictor(embed_dim=16, hidden_sizes=(64, 64, 64))
-    p.train()
-    for _ in range(3):
-        p(th.randn(32, 16) * 3 + 1, th.randn(32, 16))
-    p.eval()
-    with th.no_grad():  # spread the logit difference (here in [-0.43, -0.20]) over about [-7, 4]
-        p.out.weight.mul_(50.0)
-        p.out.bias.mul_(50.0)
-        p.out.bias[1] += 50.0 * 0.28
-    s, g = th.randn(40, 16), th.randn(40, 7, 16)
-    f32, bf16 = p.fold(), p.fold(th.bfloat16)
-    assert bf16.dtype == th.bfloat16 and all(w.dtype == th.bfloat16 and b.dtype == th.bfloat16 for w, b in bf16.layers)
-    assert bf16.w_state.dtype == bf16.w_goal.dtype == bf16.w_out.dtype == th.float32
-    assert th.equal(bf16.goal_part(g), f32.goal_part(g)) and th.equal(bf16.state_part(s), f32.state_part(s))
-    a = f32.mastery_from_parts(f32.state_part(s), f32.goal_part(g))
-    b = bf16.mastery_from_parts(bf16.state_part(s), bf16.goal_part(g))
-    assert b.dtype == th.float32 and b.shape == (40, 7)
-    assert a.min() < 0.05 and a.max() > 0.95  # the test covers the whole range
-    diff = (a - b).abs()
-    assert 0 < diff.max() < 0.02
-    assert diff.mean() < 0.005
-
-
-def test_fold_refuses_other_dtypes():
-    with pytest.raises(ValueError, match="dtype must be torch.float32 or torch.bfloat16"):
-        MasteryPredictor(embed_dim=4, hidden_sizes=(8, 8)).fold(th.float16)
-
-
 def test_curiosity_reward_eq13_by_hand():
     m = th.tensor([[0.2, 0.9, 0.5], [0.1, 0.1, 0.4]])
     assert curiosity_reward(m, alpha=1.0, aggregation="max", scale=10.0).tolist() == pytest.approx([0.01, 0.06])
@@ -120,7 +88,7 @@ def test_curiosity_reward_without_a_mask_equals_an_all_true_mask_to_the_bit(aggr
 
 
 def test_module_scores_envs_with_and_without_goals_in_one_batch():
-    """_eq13 on a batch mixing envs that have goals and envs that have none yet: alpha / delta for the latter,
+    """score_states on a batch mixing envs that have goals and envs that have none yet: alpha / delta for the latter,
     eq 13 over the env's own K goals for the former (against the unfolded predictor)."""
     space = spaces.Box(0, 255, (8, 8, 3), np.uint8)
     module = GoalCuriosityModule(space, n_goals=3, goal_buffer_size=10, embed_dim=4, latent_dim=2, predictor_hidden=(8, 8), seed=0)
@@ -129,7 +97,7 @@ def test_module_scores_envs_with_and_without_goals_in_one_batch():
     goals = rng.integers(0, 256, (5, 8, 8, 3), dtype=np.uint8)
     assert module.goal_buffer.add(goals, module.embed(goals), rng) == 5
     module.sample_goals(np.array([0, 2]))  # env 1 keeps no goals
-    assert module._has_goals.tolist() == [True, False, True]
+    assert module.episodes.has_goals.tolist() == [True, False, True]
     states = rng.integers(0, 256, (3, 8, 8, 3), dtype=np.uint8)
     got = module.score_states(states)
     with th.no_grad():
@@ -137,7 +105,7 @@ def test_module_scores_envs_with_and_without_goals_in_one_batch():
             if e == 1:
                 assert got[e] == pytest.approx(module.alpha / module.reward_scale)
                 continue
-            phi_s, phi_g = module.embed(states[e : e + 1]), module.embed(module._goal_obs[e])
+            phi_s, phi_g = module.embed(states[e : e + 1]), module.embed(module.episodes.goal_obs[e])
             h = copy.deepcopy(module.predictor).eval().mastery(phi_s.expand(3, -1), phi_g).max()
             assert got[e] == pytest.approx(float((module.alpha - h) / module.reward_scale), abs=1e-6)
     assert np.array_equal(module.score_states(states[[0, 2]], np.array([0, 2])), got[[0, 2]])
@@ -195,9 +163,9 @@ def test_module_reward_path_by_hand():
     mod = GoalCuriosityModule(space, n_goals=2, goal_buffer_size=2, embed_dim=1, predictor_hidden=(1,), seed=0, goal_novelty=0.0,
                               revisit_decay="none")
     mod.vae.embed = lambda x: x  # phi(s) = s, so the numbers stay hand-made
-    mod._sync_encoder()  # inference embeds with a frozen copy of the VAE
-    mod.predictor = tiny_predictor()
-    mod._folded = mod.predictor.fold()
+    mod.predictor.load_state_dict(tiny_predictor().state_dict())
+    mod.predictor.hidden[1].eps = 0.0  # as tiny_predictor's (not in a state dict)
+    mod.refresh()  # inference embeds with a frozen copy of the VAE, and scores with the folded predictor
     goals = np.array([[2.0], [-4.0]], dtype=np.float32)
     assert mod.goal_buffer.add(goals, th.from_numpy(goals), mod.rng) == 2
     mod.ensure_envs(2)
@@ -231,9 +199,9 @@ def test_module_pays_revisits_within_an_episode_by_the_decay(decay):
     space = spaces.Box(-10, 10, (1,), np.float32)
     mod = GoalCuriosityModule(space, n_goals=1, goal_buffer_size=1, embed_dim=1, predictor_hidden=(1,), seed=0, revisit_decay=decay)
     mod.vae.embed = lambda x: x
-    mod._sync_encoder()
-    mod.predictor = tiny_predictor()
-    mod._folded = mod.predictor.fold()
+    mod.predictor.load_state_dict(tiny_predictor().state_dict())
+    mod.predictor.hidden[1].eps = 0.0  # as tiny_predictor's (not in a state dict)
+    mod.refresh()
     goal = np.array([[2.0]], dtype=np.float32)
     mod.goal_buffer.add(goal, th.from_numpy(goal), mod.rng)
     mod.ensure_envs(2)

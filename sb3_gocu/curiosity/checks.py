@@ -31,3 +31,13 @@ def check(condition: bool, message: str) -> None:
     """Raise ``ValueError(message)`` unless ``condition``."""
     if not condition:
         raise ValueError(message)
+
+
+#: sigma, the weight of the curiosity reward (wrappers, ``mode="sum"``) or advantage (PPO_GoCu, eq 10), by default
+DEFAULT_INTRINSIC_COEF = 0.25
+
+
+def check_intrinsic_coef(value: Any) -> float:
+    """``value`` as sigma, the weight of the curiosity reward or advantage; a ``ValueError`` unless a number >= 0."""
+    check(is_number(value) and value >= 0, f"intrinsic_coef (sigma) must be a number >= 0, got {value!r}")
+    return float(value)

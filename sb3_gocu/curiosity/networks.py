@@ -21,7 +21,9 @@ def _noise(like: th.Tensor, generator: th.Generator | None, noise: th.Tensor | N
         if noise.shape != like.shape:
             raise ValueError(f"noise must have the latent's shape {tuple(like.shape)}, got {tuple(noise.shape)}")
         return noise
-    return th.randn(like.shape, generator=generator, dtype=like.dtype, device=like.device)
+    if generator is None or generator.device == like.device:
+        return th.randn(like.shape, generator=generator, dtype=like.dtype, device=like.device)
+    return th.randn(like.shape, generator=generator, dtype=like.dtype, device=generator.device).to(like.device)  # a CPU generator, a GPU VAE
 
 
 class ConvVAE(nn.Module):
@@ -349,11 +351,11 @@ class MasteryPredictor(nn.Module):
         """:return: probability of class "mastered", shape (n,)"""
         return th.softmax(self(phi_s, phi_g), dim=-1)[:, 1]
 
-    def fold(self, dtype: th.dtype = th.float32) -> "FoldedPredictor":
+    def fold(self) -> "FoldedPredictor":
         """The eval-mode function of this network with batch norm folded in and the first layer split.
 
         :param dtype: dtype of the hidden layers after the first (see :class:`FoldedPredictor`)"""
-        return FoldedPredictor(self, dtype)
+        return FoldedPredictor(self)
 
 
 def mastery_loss(logits: th.Tensor, target: th.Tensor, weights: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
@@ -382,17 +384,9 @@ class FoldedPredictor:
     The result equals ``MasteryPredictor.mastery`` in eval mode up to float rounding.
 
     :param predictor: the network to fold (its current weights and batch-norm statistics are copied)
-    :param dtype: dtype of the hidden layers after the first, where nearly all of the work of K goals per state
-        lies: ``th.float32`` (default) or ``th.bfloat16``. With bfloat16 the first layer's activations are
-        rounded to bfloat16 on the way in and the last hidden layer's are taken back to float32 for the output
-        row, so the mastery differs from float32's by the rounding of those layers (bfloat16 keeps 8 bits of
-        mantissa); on a CPU with AVX512-BF16 the products run about 3x faster (``benchmarks/bf16_scoring.py``)
     """
 
-    def __init__(self, predictor: MasteryPredictor, dtype: th.dtype = th.float32) -> None:
-        if dtype not in (th.float32, th.bfloat16):
-            raise ValueError(f"dtype must be torch.float32 or torch.bfloat16, got {dtype}")
-        self.dtype = dtype
+    def __init__(self, predictor: MasteryPredictor) -> None:
         with th.no_grad():
             linears = [m for m in predictor.hidden if isinstance(m, nn.Linear)]
             norms = [m for m in predictor.hidden if isinstance(m, nn.BatchNorm1d)]
@@ -402,12 +396,14 @@ class FoldedPredictor:
                 folded.append(((lin.weight * s[:, None]).clone(), ((lin.bias - bn.running_mean) * s + bn.bias).clone()))
             d = predictor.embed_dim
             w1, self.b1 = folded[0]
-            self.w_state = w1[:, :d].t().contiguous()  # (d, h)
-            self.w_goal = w1[:, d:].t().contiguous()  # (d, h)
-            self.layers = [(w.t().contiguous().to(dtype), b.to(dtype)) for w, b in folded[1:]]  # x @ w + b
+            # on the CPU, where the embeddings and goal halves of scoring live, whatever the predictor's device
+            self.b1 = self.b1.cpu()
+            self.w_state = w1[:, :d].t().contiguous().cpu()  # (d, h)
+            self.w_goal = w1[:, d:].t().contiguous().cpu()  # (d, h)
+            self.layers = [(w.t().contiguous().cpu(), b.cpu()) for w, b in folded[1:]]  # x @ w + b
             wo, bo = predictor.out.weight, predictor.out.bias
-            self.w_out = (wo[1] - wo[0]).clone()[:, None]  # (h, 1)
-            self.b_out = (bo[1] - bo[0]).clone()
+            self.w_out = (wo[1] - wo[0]).clone()[:, None].cpu()  # (h, 1)
+            self.b_out = (bo[1] - bo[0]).clone().cpu()
 
     def state_part(self, phi_s: th.Tensor) -> th.Tensor:
         """First-layer pre-activation of the state half, bias included: (n, h)."""
@@ -426,11 +422,9 @@ class FoldedPredictor:
         """
         n, k, h = goal_part.shape
         x = (goal_part + state_part[:, None, :]).relu_().view(n * k, h)
-        if self.dtype != th.float32:
-            x = x.to(self.dtype)
         for w, b in self.layers:
             x = th.addmm(b, x, w).relu_()
-        return th.sigmoid(th.addmm(self.b_out, x.float(), self.w_out)).view(n, k)
+        return th.sigmoid(th.addmm(self.b_out, x, self.w_out)).view(n, k)
 
     def mastery(self, phi_s: th.Tensor, phi_g: th.Tensor) -> th.Tensor:
         """Mastery probability of paired rows: (n,)."""

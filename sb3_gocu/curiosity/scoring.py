@@ -1,62 +1,37 @@
-"""Scoring states against their episodes' goals (eq 13), in the caller, a worker thread or a worker process.
+"""Scoring states against their episodes' goals (eq 13), behind one interface: :class:`Scorer`.
 
-:func:`eq13_rows` is the reward of a batch of states given their first-layer state halves' inputs (phi) and
-their episodes' goal halves; :func:`score_rows` embeds the rows not embedded yet and applies it. Both are
-pure functions of their arguments, so the module can run them wherever it likes:
-
-* in the caller's thread (``GoalCuriosityModule.step``);
-* in a worker thread (``submit(..., background=True)``), overlapping the next env step. The worker needs the
-  GIL for every tensor operation, and the env stepping holds it most of the time: measured on DoorKey-8x8,
-  the worker spent 39% of its wall time waiting for it (``benchmarks/results/throughput_doorkey8_lean.txt``);
-* in a worker process (:class:`ProcessScorer`), which has its own interpreter and so its own GIL. It keeps a
-  copy of the encoder, of the folded predictor and of each env's goal halves, sent to it only when they
-  change; per step it receives the raw observations to embed and the memoised phi of the others, and sends
-  back phi and the rewards. The process runs the same operations on the same inputs, with as many torch
-  threads as the caller had, so its values are the same to the bit (``tests/test_scoring_process.py``), and
-  the caller may score any ticket itself instead (``GoalCuriosityModule.scoring_spill``). Messages to it are
-  written by a writer thread, so the caller never waits for room in the pipe.
-
-No Stable-Baselines3 import.
+Between two updates of the networks, the reward of a state against an episode's goals is a fixed function, so
+it is memoised per episode on the observation's bytes (an observation seen again in the same episode costs a
+hash), and phi on the observation alone until the next VAE update. A batch of states is a
+:class:`ScoringTicket`: :meth:`Scorer.lookup` finds what is memoised, :meth:`Scorer.dispatch` computes the rest
+(the embedding of new observations and eq 13) in the caller or in a worker process
+(:class:`~sb3_gocu.curiosity.process.ProcessScorer`), and :meth:`Scorer.take` commits the results, in submission
+order. Where it is computed does not change a value. No SB3 import.
 """
 
 from __future__ import annotations
 
-import os
-import pickle
-import queue
-import subprocess
-import sys
-import threading
 import time
-import traceback
-import weakref
-from multiprocessing.connection import Connection
-from typing import Any
+from collections import deque
+from typing import Any, Callable
 
 import numpy as np
 import torch as th
 
+from sb3_gocu.curiosity.episodes import Episodes
 from sb3_gocu.curiosity.networks import FoldedPredictor
 from sb3_gocu.curiosity.reward import curiosity_reward
+
+#: phi memo entries kept before the memo is cleared
+PHI_MEMO_SIZE = 100_000
 
 
 @th.inference_mode()
 def eq13_rows(
-    phi: th.Tensor,
-    goal_parts: th.Tensor,
-    has_goals: np.ndarray,
-    folded: FoldedPredictor,
-    alpha: float,
-    aggregation: str,
-    reward_scale: float,
+    phi: th.Tensor, goal_parts: th.Tensor, has_goals: np.ndarray, folded: FoldedPredictor, alpha: float, aggregation: str, reward_scale: float
 ) -> th.Tensor:
-    """Raw r_gc of states (phi, (n, d)) against their episodes' goals (goal halves, (n, K, h)); ``has_goals``
-    says whether each state's episode has its K goals, and a state whose episode has none yet gets h = 0, i.e.
-    alpha / delta.
-
-    Few tensor operations on purpose: in a worker thread each one gives up the GIL and waits to get it back
-    from the env stepping (``benchmarks/gil_switch.py``), so the common case (every episode has its goals)
-    goes straight through."""
+    """Raw r_gc of states (phi, (n, d)) against their episodes' goals (goal halves, (n, K, h)); ``has_goals`` says
+    whether each state's episode has its K goals, and a state whose episode has none yet gets h = 0, i.e. alpha / delta."""
     if has_goals.all():
         mastery = folded.mastery_from_parts(folded.state_part(phi), goal_parts)
         return curiosity_reward(mastery, alpha, aggregation, reward_scale)
@@ -70,267 +45,198 @@ def eq13_rows(
 
 @th.inference_mode()
 def score_rows(
-    phi: np.ndarray,
-    embed_pos: np.ndarray,
-    raw: np.ndarray | None,
-    encoder: Any,
-    to_tensor: Any,
-    goal_parts: th.Tensor,
-    has_goals: np.ndarray,
-    folded: FoldedPredictor,
-    eq13_args: tuple[float, str, float],
+    phi: np.ndarray, embed_pos: np.ndarray, raw: np.ndarray | None, encoder: Any, to_tensor: Any, goal_parts: th.Tensor,
+    has_goals: np.ndarray, folded: FoldedPredictor, eq13_args: tuple[float, str, float],
 ) -> np.ndarray:
-    """Embed ``raw`` into the rows ``embed_pos`` of ``phi`` (in place: (n, d) float32, the other rows known),
-    then eq 13 of every row. :return: raw r_gc, (n,) float32"""
+    """Embed ``raw`` into the rows ``embed_pos`` of ``phi`` (in place: (n, d) float32, the other rows known), then eq 13
+    of every row. :return: raw r_gc, (n,) float32"""
     if len(embed_pos):
         phi[embed_pos] = encoder.embed(to_tensor(raw)).cpu().numpy()
     return eq13_rows(th.from_numpy(phi), goal_parts, has_goals, folded, *eq13_args).numpy()
 
 
-class _ProcessFuture:
-    """What :meth:`ProcessScorer.submit` returns: ``result()`` waits for the process's answer (the rewards)."""
+class ScoringTicket:
+    """One batch of states, one per env of ``env_indices``, from its submission until its rewards are taken."""
 
-    def __init__(self, scorer: "ProcessScorer", ticket: Any, tid: int, answer_bytes: int) -> None:
-        self._scorer, self.ticket, self.tid = scorer, ticket, tid
-        self.answer_bytes = answer_bytes  # the answer's size, about
-        self._done = False
-        self._result: Any = None
-
-    def done(self) -> bool:
-        return self._done
-
-    def result(self) -> Any:
-        while not self._done:
-            self._scorer._receive_one()
-        return self._result
-
-
-class _Writer:
-    """Writes messages into a pipe, in order, from a thread of its own: the caller never waits for the reader to
-    make room (a scoring process busy with earlier tickets; a trained agent's changed goal halves, ~100 KB a
-    step, fill the 64 KiB pipe). ``error`` holds the ``OSError`` that ended it, if any."""
-
-    def __init__(self, conn: Connection) -> None:
-        self.conn = conn
-        self.error: OSError | None = None
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name="gocu-score-writer", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while True:
-            payload = self._queue.get()
-            if payload is None:
-                return
-            try:
-                self.conn.send_bytes(payload)
-            except OSError as error:
-                self.error = error
-                return
-
-    def send(self, payload: bytes) -> None:
-        self._queue.put(payload)
-
-    def stop(self) -> None:
-        """Stop after the messages queued so far (it does not wait)."""
-        self._queue.put(None)
+    def __init__(self, n: int, embed_dim: int) -> None:
+        self.rewards = np.zeros(n, dtype=np.float32)  # raw r_gc (eq 13), filled at collection
+        self.phi = np.zeros((n, embed_dim), dtype=np.float32)
+        self.miss = np.zeros(0, dtype=np.int64)  # rows scored by the predictor
+        self.embed_rows = np.zeros(0, dtype=np.int64)  # rows of ``miss`` whose phi is not memoised: embedded with the scoring
+        self.phi_from: list[tuple[int, ScoringTicket, int]] = []  # (row, earlier ticket, its row): phi being embedded there
+        self.pending: list[tuple[int, ScoringTicket, int]] = []  # (row, earlier ticket, its row): same state, same episode
+        self.computed: np.ndarray | None = None  # eq 13 of the miss rows, when computed in the caller
+        self.raw: np.ndarray | None = None  # raw observations of the embed rows (a copy: the env reuses its buffers)
+        self.encoder: Any = None  # the encoder of the submission (a VAE update swaps the module's)
+        self.env_indices = np.zeros(0, dtype=np.int64)
+        self.keys: list[bytes] = []
+        self.episode_ids = np.zeros(0, dtype=np.int64)
+        self.has_goals = np.zeros(0, dtype=bool)  # whether each miss row's episode has its K goals
+        self.goal_parts: th.Tensor | None = None  # the miss rows' goal halves (copied)
+        self.folded: FoldedPredictor | None = None
+        self.factor: np.ndarray | None = None  # revisit factor
+        self.recording = False
+        self.future: Any = None  # the scoring process's answer
+        self.compute_time = 0.0
+        self.compute_cpu_time = 0.0
+        self.result: tuple[np.ndarray, np.ndarray] | None = None
 
 
-class ProcessScorer:
-    """Scores :class:`~sb3_gocu.curiosity.module.ScoringTicket` s in a child process, in submission order.
+class Scorer:
+    """Memoised scoring of tickets, in the caller or in a worker process.
 
-    The child is started with ``python -c`` (not ``multiprocessing``: the caller's script, guarded by
-    ``if __name__ == "__main__"`` or not, is not run again) and talks over two pipes. It exits when the pipes close
-    (this object is collected or :meth:`close` is called, or the parent dies).
-
-    :param to_tensor: picklable callable turning a raw batch into the encoder's input (the module's adapter)
-    :param num_threads: torch threads of the child (default: the caller's ``torch.get_num_threads()``, which
-        keeps the values the same to the bit as scoring in the caller)
+    :param episodes: the per-env episode state (its reward memos, ids and goal halves)
+    :param embed_dim: size of phi
+    :param to_tensor: raw batch -> the encoder's input on the networks' device (picklable, for the process)
+    :param eq13_args: (alpha, h, delta) of eq 13
+    :param use_process: whether :meth:`dispatch` with ``background=True`` may send tickets to a worker process
     """
 
-    def __init__(self, to_tensor: Any, num_threads: int | None = None) -> None:
-        num_threads = th.get_num_threads() if num_threads is None else int(num_threads)
-        if num_threads < 1:
-            raise ValueError(f"num_threads must be >= 1, got {num_threads}")
-        to_child_r, to_child_w = os.pipe()
-        from_child_r, from_child_w = os.pipe()
-        code = f"from sb3_gocu.curiosity.scoring import _serve; _serve({to_child_r}, {from_child_w}, {num_threads})"
-        self._proc = subprocess.Popen(
-            [sys.executable, "-c", code],
-            pass_fds=(to_child_r, from_child_w),
-            stdin=subprocess.DEVNULL,
-            env={**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)},  # the caller's modules
-        )
-        os.close(to_child_r)
-        os.close(from_child_w)
-        self._send = _Writer(Connection(to_child_w, readable=False))
-        self._recv = Connection(from_child_r, writable=False)
-        self._finalizer = weakref.finalize(self, ProcessScorer._shutdown, self._send, self._recv, self._proc)
-        self._send.send(pickle.dumps(("init", to_tensor), protocol=pickle.HIGHEST_PROTOCOL))
-        self._encoder: Any = None  # the objects the child holds copies of
-        self._folded: Any = None
-        self._goal_versions: dict[int, int] = {}
-        self._next_tid = 0
-        self._in_flight: list[_ProcessFuture] = []  # in submission order, answers not received yet
-        self.max_answer_bytes = 32 * 1024  # bound on their answers' sizes (see submit)
-        self.bytes_sent = 0
+    def __init__(self, episodes: Episodes, embed_dim: int, to_tensor: Callable[[np.ndarray], th.Tensor],
+                 eq13_args: tuple[float, str, float], use_process: bool) -> None:
+        self.episodes, self.embed_dim, self.to_tensor, self.eq13_args = episodes, embed_dim, to_tensor, eq13_args
+        self.use_process = use_process
+        self.process: Any = None  # a ProcessScorer, once started
+        #: a ticket dispatched while this many or more of the process's tickets are unanswered (or while sending it
+        #: would first wait for answers) is scored in the caller instead (None: never)
+        self.spill: int | None = None
+        self.pending: list[dict[bytes, tuple[ScoringTicket, int]]] = []  # states of each episode being scored
+        self.outstanding: deque[ScoringTicket] = deque()
+        self.phi_memo: dict[bytes, Any] = {}  # key -> phi, or (ticket, row) while that ticket embeds it
+        self.cache_hits = self.cache_lookups = 0  # cumulative
+        self.spilled_tickets = 0
+        self.time_in_process = 0.0  # the process's scoring (overlaps the caller's work)
+        self.cpu_in_process = 0.0
+        self.time_waiting = 0.0  # the caller waiting for the process's scores
 
-    @staticmethod
-    def _shutdown(send: _Writer, recv: Connection, proc: subprocess.Popen) -> None:
-        send.stop()
-        send._thread.join(timeout=10)  # the messages queued are written (the child reads them) before the pipe closes
-        for conn in (send.conn, recv):
-            try:
-                conn.close()
-            except OSError:
-                pass
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+    def grow(self, n_envs: int) -> None:
+        self.pending += [{} for _ in range(n_envs - len(self.pending))]
 
-    @property
-    def _answer_bytes(self) -> int:
-        """Sizes of the answers not received yet, about."""
-        return sum(f.answer_bytes for f in self._in_flight)
+    def start_process(self) -> Any:
+        """The worker process, started now if not yet (it takes a few seconds, beside whatever the caller does)."""
+        if not self.use_process:
+            raise ValueError("this module scores in the caller (scoring_process=False)")
+        if self.process is None:
+            from sb3_gocu.curiosity.process import ProcessScorer
 
-    def close(self) -> None:
-        """Wait for the answers still due, then stop the child."""
-        while self._in_flight:
-            self._receive_one()
-        self._finalizer()
+            self.process = ProcessScorer(self.to_tensor)
+        return self.process
 
-    def submit(self, ticket: Any, eq13_args: tuple[float, str, float], goal_parts: th.Tensor, goal_versions: np.ndarray) -> _ProcessFuture:
-        """Send a ticket (its ``miss`` rows: phi known or to embed, their envs' goals) to the child.
-
-        :param goal_parts: every env's current goal halves, (n_envs, K, h): the rows of the ticket's envs whose
-            version the child does not have are copied into the message
-        :param goal_versions: their versions, (n_envs,)
-        """
-        if self._proc.poll() is not None or self._send.error is not None:
-            raise self._ended()
-        # the child answers in order into a pipe that holds 64 KiB: if the answers not read yet outgrew it, the
-        # child would block writing one and stop reading, and the messages queued for the writer thread would pile
-        # up (a caller submitting many tickets before collecting). Read answers first while they would pass the bound.
-        answer_bytes = self._answer_size(ticket)
-        while self.would_wait(ticket):
-            self._receive_one()
-        tid = self._next_tid
-        self._next_tid += 1
-        miss = ticket.miss
-        phi = ticket.phi[miss]
-        embed_pos = np.searchsorted(miss, ticket.embed_rows)
-        refs = []  # (position in miss, earlier tid, earlier row): phi the child is computing (or has)
-        for j, earlier, row in ticket.phi_from:
-            pos = int(np.searchsorted(miss, j))
-            fut = earlier.future
-            if isinstance(fut, _ProcessFuture) and fut._scorer is self and not fut.done():
-                refs.append((pos, fut.tid, int(np.searchsorted(earlier.miss, row))))
-            else:  # computed in the caller, or its answer is back: the caller has it
-                if fut is not None:
-                    fut.result()
-                phi[pos] = earlier.phi[row]
-        envs = ticket.env_indices[miss]
-        goals: dict[int, th.Tensor] = {}
-        for e, version in zip(envs.tolist(), goal_versions[envs].tolist()):
-            if self._goal_versions.get(e) != version:
-                goals[e] = goal_parts[e].clone()
-                self._goal_versions[e] = version
-        message: dict[str, Any] = {
-            "tid": tid, "phi": phi, "embed_pos": embed_pos, "raw": ticket.raw if len(embed_pos) else None, "refs": refs,
-            "envs": envs, "has_goals": ticket.has_goals, "goals": goals, "eq13": eq13_args,
-            "keep_from": self._in_flight[0].tid if self._in_flight else tid,
-        }
-        if len(embed_pos) and ticket.encoder is not self._encoder:
-            message["encoder"] = self._encoder = ticket.encoder
-        if ticket.folded is not self._folded:
-            message["folded"] = self._folded = ticket.folded
-        payload = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-        self.bytes_sent += len(payload)
-        self._send.send(payload)  # written by the writer thread, in order
-        future = _ProcessFuture(self, ticket, tid, answer_bytes)
-        self._in_flight.append(future)
-        return future
-
-    @staticmethod
-    def _answer_size(ticket: Any) -> int:
-        return len(ticket.miss) * (ticket.phi.shape[1] + 1) * 4 + 1024
-
-    def would_wait(self, ticket: Any) -> bool:
-        """Whether :meth:`submit` would first wait for answers (their bound, ``max_answer_bytes``)."""
-        return bool(self._in_flight) and self._answer_bytes + self._answer_size(ticket) > self.max_answer_bytes
-
-    def unanswered(self) -> int:
-        """Take the answers already sent (without waiting) and return how many tickets are still unanswered."""
-        try:
-            while self._in_flight and self._recv.poll():
-                self._receive_one()
-        except (EOFError, OSError) as error:
-            raise self._ended() from error
-        return len(self._in_flight)
-
-    def _ended(self) -> RuntimeError:
-        return RuntimeError(
-            f"the GoCu scoring process ended (exit code {self._proc.poll()}; its error output, if any, is above): "
-            "the scores in flight are lost, so the run cannot go on"
-        )
-
-    def _receive_one(self) -> None:
-        future = self._in_flight[0]
-        try:
-            answer = pickle.loads(self._recv.recv_bytes())
-        except (EOFError, OSError) as error:
-            raise self._ended() from error
-        if answer[0] == "error":
-            self._in_flight.pop(0)
-            future._done = True
-            raise RuntimeError(f"the GoCu scoring process failed:\n{answer[1]}")
-        tid = answer[1]
-        if tid != future.tid:
-            raise RuntimeError(f"the GoCu scoring process answered ticket {tid}, expected {future.tid}")
-        self._in_flight.pop(0)
-        _, _, phi, rewards, wall, cpu = answer
-        ticket = future.ticket
-        ticket.phi[ticket.miss] = phi
-        ticket.compute_time, ticket.compute_cpu_time = wall, cpu
-        future._result = rewards
-        future._done = True
-
-
-def _serve(read_fd: int, write_fd: int, num_threads: int) -> None:
-    """The child's loop: answer every ticket in order; exit when the parent closes its end. A ticket's
-    ``refs`` point at rows (positions in ``miss``) of earlier tickets whose phi the parent has not taken yet."""
-    th.set_num_threads(num_threads)
-    recv, send = Connection(read_fd, writable=False), Connection(write_fd, readable=False)
-    to_tensor = encoder = folded = None
-    goals: dict[int, th.Tensor] = {}
-    phis: dict[int, np.ndarray] = {}  # phi of the tickets the parent has not taken yet
-    while True:
-        try:
-            message = pickle.loads(recv.recv_bytes())
-        except (EOFError, OSError):
-            return
-        try:
-            if isinstance(message, tuple):
-                to_tensor = message[1]
+    def lookup(self, raw: np.ndarray, env_indices: np.ndarray, keys: list[bytes], encoder: Any, folded: FoldedPredictor) -> ScoringTicket:
+        """Memo lookups of one observation per env: rewards known from the episode's memo, rows equal to a row still
+        being scored (``pending``), and the rows to score (``miss``), with their phi where memoised."""
+        n = len(raw)
+        ticket = ScoringTicket(n, self.embed_dim)
+        episodes = self.episodes
+        ticket.env_indices, ticket.keys = env_indices, keys
+        ticket.episode_ids = episodes.ids[env_indices].copy()
+        miss = []
+        for j, (e, key) in enumerate(zip(env_indices, keys)):
+            hit = episodes.rewards[e].get(key)
+            if hit is not None:
+                ticket.rewards[j], ticket.phi[j] = hit
                 continue
-            for tid in [t for t in phis if t < message["keep_from"]]:
-                del phis[tid]
-            t0, c0 = time.perf_counter(), time.thread_time()
-            encoder = message.get("encoder", encoder)
-            folded = message.get("folded", folded)
-            goals.update(message["goals"])
-            phi = message["phi"]
-            for pos, tid, row in message["refs"]:
-                phi[pos] = phis[tid][row]
-            envs = message["envs"].tolist()
-            goal_parts = th.stack([goals[e] for e in envs]) if envs else th.zeros(0)
-            rewards = score_rows(
-                phi, message["embed_pos"], message["raw"], encoder, to_tensor, goal_parts, message["has_goals"], folded, message["eq13"]
-            )
-            phis[message["tid"]] = phi
-            answer = ("ok", message["tid"], phi, rewards, time.perf_counter() - t0, time.thread_time() - c0)
-        except BaseException:
-            answer = ("error", traceback.format_exc())
-        send.send_bytes(pickle.dumps(answer, protocol=pickle.HIGHEST_PROTOCOL))
+            earlier = self.pending[e].get(key)
+            if earlier is not None:  # seen earlier in this episode, its score (and maybe phi) not taken yet
+                ticket.pending.append((j, earlier[0], earlier[1]))
+                continue
+            miss.append(j)
+        self.cache_lookups += n
+        self.cache_hits += n - len(miss)
+        if miss:
+            m_idx = np.asarray(miss)
+            ticket.miss = m_idx
+            todo = []
+            for j in miss:
+                hit = self.phi_memo.get(keys[j])
+                if hit is None:
+                    todo.append(j)
+                elif isinstance(hit, tuple):
+                    ticket.phi_from.append((j, *hit))
+                else:
+                    ticket.phi[j] = hit
+            if todo:
+                ticket.embed_rows = np.asarray(todo, dtype=np.int64)
+                ticket.raw = raw[ticket.embed_rows]
+                ticket.encoder = encoder
+                if len(self.phi_memo) + len(todo) > PHI_MEMO_SIZE:
+                    self.phi_memo.clear()
+                for j in todo:
+                    self.phi_memo[keys[j]] = (ticket, j)
+            ticket.has_goals = episodes.has_goals[env_indices[m_idx]]
+            ticket.folded = folded
+            for j in miss:
+                self.pending[env_indices[j]][keys[j]] = (ticket, j)
+        return ticket
 
+    def dispatch(self, ticket: ScoringTicket, background: bool) -> None:
+        """Compute the ticket's ``miss`` rows: in the worker process if ``background`` (and the process is used and
+        not behind by ``spill`` tickets), else now."""
+        if len(ticket.miss) and background and self.use_process and not self._spill(ticket):
+            # the process keeps each env's goal halves: it is sent those changed since it last had them
+            ticket.future = self.start_process().submit(ticket, self.eq13_args, self.episodes.goal_parts, self.episodes.goal_version)
+        elif len(ticket.miss):
+            # a copy (indexing) of the episodes' goal halves: a new episode may start before the rewards are taken
+            ticket.goal_parts = self.episodes.goal_parts[th.from_numpy(ticket.env_indices[ticket.miss])]
+            for _, earlier, _ in ticket.phi_from:  # a later ticket may read this one's phi
+                if earlier.future is not None:
+                    earlier.future.result()
+            ticket.computed = self._compute(ticket)
+        self.outstanding.append(ticket)
+
+    def _spill(self, ticket: ScoringTicket) -> bool:
+        """Whether to score this ticket in the caller rather than send it to the process (``spill``)."""
+        if self.spill is None or self.process is None:
+            return False
+        if self.process.unanswered() < self.spill and not self.process.would_wait(ticket):
+            return False
+        if any(earlier.future is not None and not earlier.future.done() for _, earlier, _ in ticket.phi_from):
+            return False
+        self.spilled_tickets += 1
+        return True
+
+    @th.inference_mode()
+    def _compute(self, ticket: ScoringTicket) -> np.ndarray:
+        """phi of the ticket's ``embed_rows`` and eq 13 for its ``miss`` rows, in the caller."""
+        for j, earlier, row in ticket.phi_from:
+            ticket.phi[j] = earlier.phi[row]
+        phi = ticket.phi[ticket.miss]
+        embed_pos = np.searchsorted(ticket.miss, ticket.embed_rows)
+        r = score_rows(phi, embed_pos, ticket.raw, ticket.encoder, self.to_tensor, ticket.goal_parts, ticket.has_goals, ticket.folded, self.eq13_args)
+        ticket.phi[ticket.miss] = phi
+        return r
+
+    def take(self, ticket: ScoringTicket) -> None:
+        """Wait for the oldest outstanding ticket (``ticket``) and commit it: its raw rewards and phi filled, the
+        scored rows memoised in their episode (unless it has ended since)."""
+        if not self.outstanding or self.outstanding[0] is not ticket:
+            raise ValueError("this scoring ticket is not the oldest outstanding one of this module")
+        self.outstanding.popleft()
+        if not len(ticket.miss):
+            computed = np.zeros(0, dtype=np.float32)
+        elif ticket.future is not None:
+            t_wait = time.perf_counter()
+            computed = ticket.future.result()
+            self.time_waiting += time.perf_counter() - t_wait
+            self.time_in_process += ticket.compute_time
+            self.cpu_in_process += ticket.compute_cpu_time
+        else:
+            computed = ticket.computed
+        env_indices, keys, episodes = ticket.env_indices, ticket.keys, self.episodes
+        if len(ticket.miss):
+            ticket.rewards[ticket.miss] = computed
+        for j, earlier, row in ticket.pending:
+            ticket.rewards[j] = earlier.rewards[row]
+            ticket.phi[j] = earlier.phi[row]
+        for j in ticket.embed_rows:
+            entry = self.phi_memo.get(keys[j])
+            if isinstance(entry, tuple) and entry[0] is ticket and entry[1] == j:
+                self.phi_memo[keys[j]] = th.from_numpy(ticket.phi[j].copy())
+        ticket.raw = ticket.encoder = None
+        for j, rj in zip(ticket.miss, ticket.rewards[ticket.miss]):
+            e = env_indices[j]
+            if self.pending[e].get(keys[j], (None,))[0] is ticket:
+                del self.pending[e][keys[j]]
+            if episodes.ids[e] != ticket.episode_ids[j]:
+                continue  # that episode is over: its memo was dropped
+            episodes.remember_reward(e, keys[j], rj, ticket.phi[j])

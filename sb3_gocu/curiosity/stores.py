@@ -4,7 +4,6 @@ training pairs (s_t, s_{t+y}) are drawn from (section 4.2.3)."""
 from __future__ import annotations
 
 import hashlib
-from typing import Callable
 
 import numpy as np
 import torch as th
@@ -79,33 +78,16 @@ class TrajectoryStore:
     :param total_capacity: states kept over all envs
     :param embed_dim: size of phi
     :param min_per_env: smallest ring length per env
-    :param obs_shape: shape of a raw observation, to keep the observations beside their embeddings (so that a new
-        encoder can embed them again, :meth:`embedded`); None: embeddings only
-    :param obs_dtype: dtype of the raw observations kept
     """
 
-    def __init__(
-        self,
-        total_capacity: int,
-        embed_dim: int,
-        min_per_env: int = 1,
-        obs_shape: tuple[int, ...] | None = None,
-        obs_dtype: np.dtype | type = np.uint8,
-    ) -> None:
+    def __init__(self, total_capacity: int, embed_dim: int, min_per_env: int = 1) -> None:
         self.total_capacity = total_capacity
         self.min_per_env = min_per_env
         self.capacity = 0
         self.embed_dim = embed_dim
-        self.obs_shape = None if obs_shape is None else tuple(obs_shape)
-        self.obs_dtype = np.dtype(obs_dtype)
         self.embeddings = th.zeros(0, 0, embed_dim)
         self.episode_ids = np.zeros((0, 0), dtype=np.int64)
         self.count = np.zeros(0, dtype=np.int64)  # states written per env, ever (ring position = count % capacity)
-        self.observations = None if self.obs_shape is None else np.zeros((0, 0, *self.obs_shape), dtype=self.obs_dtype)
-
-    @property
-    def keeps_observations(self) -> bool:
-        return self.observations is not None
 
     @property
     def n_envs(self) -> int:
@@ -119,27 +101,16 @@ class TrajectoryStore:
             self.embeddings = th.zeros(self.capacity, n_envs, self.embed_dim)
             self.episode_ids = np.full((self.capacity, n_envs), -1, dtype=np.int64)
             self.count = np.zeros(n_envs, dtype=np.int64)
-            if self.observations is not None:
-                self.observations = np.zeros((self.capacity, n_envs, *self.obs_shape), dtype=self.obs_dtype)
         elif extra > 0:
             self.embeddings = th.cat([self.embeddings, th.zeros(self.capacity, extra, self.embed_dim)], dim=1)
             self.episode_ids = np.concatenate([self.episode_ids, np.full((self.capacity, extra), -1)], axis=1)
             self.count = np.concatenate([self.count, np.zeros(extra, dtype=np.int64)])
-            if self.observations is not None:
-                self.observations = np.concatenate([self.observations, np.zeros((self.capacity, extra, *self.obs_shape), dtype=self.obs_dtype)], axis=1)
 
-    def add(self, embeddings: th.Tensor, episode_ids: np.ndarray, env_indices: np.ndarray, observations: np.ndarray | None = None) -> None:
-        """Write one state per env of ``env_indices``.
-
-        :param observations: their raw observations; required when the store keeps them, ignored otherwise
-        """
-        if self.observations is not None and observations is None:
-            raise ValueError("this trajectory store keeps observations (obs_shape is set): add() needs them")
+    def add(self, embeddings: th.Tensor, episode_ids: np.ndarray, env_indices: np.ndarray) -> None:
+        """Write one state per env of ``env_indices``."""
         pos = self.count[env_indices] % self.capacity
         self.embeddings[pos, env_indices] = embeddings
         self.episode_ids[pos, env_indices] = episode_ids
-        if self.observations is not None:
-            self.observations[pos, env_indices] = observations
         self.count[env_indices] += 1
 
     def clear(self) -> None:
@@ -149,64 +120,19 @@ class TrajectoryStore:
     def __len__(self) -> int:
         return int(np.minimum(self.count, self.capacity).sum())
 
-    def copy(self) -> "TrajectoryStore":
-        """An independent copy (arrays copied), e.g. for a background thread while this one goes on filling."""
-        out = TrajectoryStore(self.total_capacity, self.embed_dim, self.min_per_env, self.obs_shape, self.obs_dtype)
-        out.capacity = self.capacity
-        out.embeddings = self.embeddings.clone()
-        out.episode_ids = self.episode_ids.copy()
-        out.count = self.count.copy()
-        out.observations = None if self.observations is None else self.observations.copy()
-        return out
-
-    def embedded(self, embed: Callable[[np.ndarray], th.Tensor]) -> th.Tensor:
-        """The store's embeddings as ``embed`` gives them: every filled slot embedded again from its kept raw
-        observation (each distinct observation once, so equal observations get equal embeddings, as
-        ``first_visit`` distances need), the other slots as they are. Needs ``obs_shape``.
-
-        :param embed: raw observations (n, *obs_shape) -> phi (n, embed_dim), e.g. a new encoder's
-        :return: a tensor shaped like :attr:`embeddings` (the store itself is not changed)
-        """
-        if self.observations is None:
-            raise ValueError("this trajectory store keeps no observations (obs_shape=None): nothing to embed again")
-        out = self.embeddings.clone()
-        filled = np.minimum(self.count, self.capacity)
-        slots = np.arange(self.capacity)[:, None] < filled[None, :]  # filled ring positions (the first filled[e] of env e)
-        t, e = np.nonzero(slots)
-        if len(t) == 0:
-            return out
-        raw = self.observations[t, e]
-        first, inverse = distinct_rows(raw)
-        phi = embed(raw[first])
-        out[th.from_numpy(t), th.from_numpy(e)] = phi[th.from_numpy(inverse)].to(out.dtype)
-        return out
-
     def state_dict(self) -> dict:
-        state = {
+        return {
             "embeddings": self.embeddings.clone(),
             "episode_ids": th.from_numpy(self.episode_ids.copy()),
             "count": th.from_numpy(self.count.copy()),
         }
-        if self.observations is not None:
-            state["observations"] = th.from_numpy(self.observations.copy())
-        return state
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore a :meth:`state_dict`. A store that keeps observations, given a state without them (saved by
-        one that did not), starts empty: its embeddings could not be renewed after the next VAE update."""
+        """Restore a :meth:`state_dict`."""
         self.embeddings = state["embeddings"].clone()
         self.episode_ids = state["episode_ids"].numpy().copy()
         self.count = state["count"].numpy().copy()
         self.capacity = int(self.embeddings.shape[0])
-        if self.obs_shape is not None:
-            if "observations" in state:
-                obs = state["observations"].numpy()
-                if tuple(obs.shape[2:]) != self.obs_shape:
-                    raise ValueError(f"saved trajectory observations have shape {tuple(obs.shape[2:])}, expected {self.obs_shape}")
-                self.observations = obs.astype(self.obs_dtype, copy=True)
-            else:
-                self.observations = np.zeros((self.capacity, self.n_envs, *self.obs_shape), dtype=self.obs_dtype)
-                self.clear()
 
     def sample_pairs(
         self, n_pairs: int, max_distance: int, rng: np.random.Generator, first_visit: bool = False
@@ -220,16 +146,10 @@ class TrajectoryStore:
             small y; with the first visit an identical state is at distance 0.
         :return: phi(s), phi(g), distance (float), each with the same first dimension (possibly fewer than n_pairs)
         """
-        return self.pairs(self.draw_pairs(n_pairs, max_distance, rng, first_visit))
-
-    def draw_pairs(
-        self, n_pairs: int, max_distance: int, rng: np.random.Generator, first_visit: bool = False
-    ) -> tuple[np.ndarray, np.ndarray, th.Tensor]:
-        """The draw of :meth:`sample_pairs` as slots: env index, ring positions of s and g (2, n), distance.
-        The embeddings are read by :meth:`pairs`, which may take other embeddings of the same states."""
         filled = np.minimum(self.count, self.capacity)
         if self.capacity == 0 or filled.sum() < 2:
-            return np.zeros(0, dtype=np.int64), np.zeros((2, 0), dtype=np.int64), th.zeros(0)
+            empty = th.zeros(0, self.embed_dim)
+            return empty, empty, th.zeros(0)
         starts = self.count - filled  # chronological index 0 = absolute step count - filled
         weights = filled / filled.sum()
         chosen_e, chosen_t, chosen_y = [], [], []
@@ -254,26 +174,16 @@ class TrajectoryStore:
         t = np.concatenate(chosen_t, axis=1)
         y = np.concatenate(chosen_y)
         dist = th.from_numpy(y).float()
-        if first_visit and len(e):
-            e_t = th.from_numpy(e)
-            phi_g = self.embeddings[th.from_numpy(t[1]), e_t]
+        if len(e) == 0:
+            empty = th.zeros(0, self.embed_dim)
+            return empty, empty, dist
+        e_t = th.from_numpy(e)
+        phi_s, phi_g = self.embeddings[th.from_numpy(t[0]), e_t], self.embeddings[th.from_numpy(t[1]), e_t]
+        if first_visit:
             # scan k = y-1 .. 0: the last match found is the earliest visit (states of one episode: same ids)
             for k in range(int(y.max()) - 1, -1, -1):
                 rows = np.nonzero(y > k)[0]
                 slot = th.from_numpy((t[0, rows] + k) % self.capacity)
                 same = (self.embeddings[slot, e_t[rows]] == phi_g[rows]).all(dim=1)
                 dist[th.from_numpy(rows)[same]] = float(k)
-        return e, t, dist
-
-    def pairs(self, draw: tuple[np.ndarray, np.ndarray, th.Tensor], embeddings: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        """phi(s), phi(g) and distance of the pairs of a :meth:`draw_pairs`.
-
-        :param embeddings: embeddings of the store's slots (e.g. from :meth:`embedded`); None: the store's own
-        """
-        e, t, dist = draw
-        emb = self.embeddings if embeddings is None else embeddings
-        if len(e) == 0:
-            empty = th.zeros(0, self.embed_dim)
-            return empty, empty, dist
-        e_t = th.from_numpy(e)
-        return emb[th.from_numpy(t[0]), e_t], emb[th.from_numpy(t[1]), e_t], dist
+        return phi_s, phi_g, dist

@@ -15,6 +15,7 @@ bookkeeping, PPO update, curiosity inference, VAE training (pretraining included
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -33,7 +34,6 @@ from sb3_gocu.callbacks import GoCuCallback
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from malloc_thresholds import fix_malloc_thresholds  # noqa: E402
-from split_updates import weights  # noqa: E402  (the same hash as split_updates.py's runs)
 
 PPO_SETTINGS: dict[str, Any] = dict(PAPER_PPO_KWARGS)  # both algorithms get them explicitly
 
@@ -94,13 +94,12 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         # a trained agent: its policy moves (fewer repeated states, more scoring), its goal buffer is full
         model = PPO_GoCu.load(gocu_model, env=venv, device="cpu")
         model.async_scoring = async_scoring
-        for name, value in overrides.items():
-            setattr(model.curiosity, name, value)
-        model.curiosity._folded = model.curiosity._fold()  # a scoring_dtype override takes effect at once
+        if overrides:
+            raise ValueError("--gocu-model: a loaded model keeps its curiosity settings (they are fixed at construction)")
     else:
         curiosity_kwargs = {**curiosity_kwargs, **overrides}
         model = PPO_GoCu("CnnPolicy", venv, seed=seed, curiosity_kwargs=curiosity_kwargs, async_scoring=async_scoring, **PPO_SETTINGS)
-    for name, value in (model_attrs or {}).items():  # PPO_GoCu attributes (e.g. switch_interval)
+    for name, value in (model_attrs or {}).items():  # PPO_GoCu attributes (e.g. scoring_lag)
         if not hasattr(model, name):
             raise ValueError(f"--also-model-kwargs: PPO_GoCu has no attribute {name!r}")
         setattr(model, name, value)
@@ -131,20 +130,19 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
     if algo == "ppo_gocu":
         mod = model.curiosity
         out["curiosity_inference_s"] = mod.time_inference
-        out["scoring_in_worker_s"] = mod.time_inference_background
-        out["scoring_in_worker_cpu_s"] = mod.cpu_inference_background
+        out["scoring_in_worker_s"] = mod.scorer.time_in_process
+        out["scoring_in_worker_cpu_s"] = mod.scorer.cpu_in_process
         out["vae_training_s"] = mod.time_vae
         out["predictor_training_s"] = mod.time_predictor
-        out["cache_hit_rate"] = mod.cache_hits / max(1, mod.cache_lookups)
+        out["cache_hit_rate"] = mod.scorer.cache_hits / max(1, mod.scorer.cache_lookups)
         # with overlap_ppo_update an update is waited for at the next rollout's first step (or at the end of
         # learn), not in maybe_train
         # the end of learn waits for an update still running (outside any rollout): reported on its own row
         out["end_of_learn_wait_s"] = pretrain_timer.totals.get("end_of_learn", 0.0) - end_before
         out["curiosity_updates_s"] = out.get("curiosity_updates_s", 0.0) + waits_in_rollouts[0]
         out["pretrain_s"] = pretrain_timer.totals.get("pretrain", 0.0) - pretrain_before
-        out["waiting_for_worker_s"] = mod.time_scoring_wait
-        out["steps_queued_behind_updates"] = float(mod.queued_steps)  # queue_during_update
-        out["tickets_spilled"] = float(mod.spilled_tickets)  # spill_scoring
+        out["waiting_for_worker_s"] = mod.scorer.time_waiting
+        out["tickets_spilled"] = float(mod.scorer.spilled_tickets)  # spill_scoring
     out["policy_and_bookkeeping_s"] = (
         out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0) - out.get("curiosity_updates_s", 0.0)
     )
@@ -157,7 +155,11 @@ def weights_hash(model: Any) -> str:
     """First 16 hex digits of the SHA-256 of the policy's weights (and the VAE's and the predictor's): arms that
     must train the same networks (options that change only the wall time) show the same digits."""
     nets = [model.policy] + ([model.curiosity.vae, model.curiosity.predictor] if getattr(model, "curiosity", None) is not None else [])
-    return weights(*nets)
+    h = hashlib.sha256()
+    for net in nets:
+        for value in net.state_dict().values():
+            h.update(value.detach().cpu().numpy().tobytes())
+    return h.hexdigest()[:16]
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -171,20 +173,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="fixed: glibc trim/mmap thresholds set once for the process, so no run pays for being first; "
                         "default: glibc's own dynamic thresholds")
     parser.add_argument("--curiosity-kwargs", default="{}", help="JSON dict of GoalCuriosityModule keywords")
+    parser.add_argument("--model-kwargs", default="{}", help="JSON dict of PPO_GoCu attributes set in every PPO_GoCu arm")
+    parser.add_argument("--reverse", action="store_true", help="run the arms in reverse order (the --also-* arms first, plain PPO last)")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
-    parser.add_argument(
-        "--also-background", action="store_true", help="also run PPO_GoCu with train_in_background=True (another run)"
-    )
-    parser.add_argument("--also-sync", action="store_true", help="also run PPO_GoCu with async_scoring=False (another run)")
-    parser.add_argument(
-        "--also-in-place", action="store_true",
-        help="also run PPO_GoCu with the updates in place (train_in_background=False, overlap_ppo_update=False; another run)",
-    )
     parser.add_argument("--gocu-model", default=None, help="PPO_GoCu continues this trained model instead of starting afresh "
                         "(its own curiosity settings, but for those the --also-* arms set; "
                         "no pretraining); plain PPO still starts afresh")
     parser.add_argument("--also-model-kwargs", action="append", default=None, metavar="JSON",
-                        help="also run PPO_GoCu with these PPO_GoCu attributes set, e.g. '{\"switch_interval\": 0.0001}' "
+                        help="also run PPO_GoCu with these PPO_GoCu attributes set, e.g. '{\"scoring_lag\": 1}' "
                         "(another run each time the option is given)")
     parser.add_argument("--also-curiosity-kwargs", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with these GoalCuriosityModule keywords on top of --curiosity-kwargs, "
@@ -210,41 +206,35 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     raw = raw_env_rate(args.env, 16, min(args.timesteps, 32_000), args.seed)
     results = {}
     labels_extra: dict[str, str] = {}
+    base_model = json.loads(args.model_kwargs)
+    thunks = []
     order = ["ppo", "ppo_gocu"] if args.order == "ppo-first" else ["ppo_gocu", "ppo"]
     for algo in order:
-        results[algo] = run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model)
-    if args.also_background:
-        results["ppo_gocu_background"] = run(
-            "ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, overrides={"train_in_background": True}
-        )
-    if args.also_in_place:
-        results["ppo_gocu_in_place"] = run(
-            "ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
-            overrides={"train_in_background": False, "overlap_ppo_update": False},
-        )
+        thunks.append((algo, lambda algo=algo: run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
+                                                   model_attrs=base_model if algo == "ppo_gocu" else None)))
     for i, extra in enumerate(args.also_model_kwargs or []):
-        results[f"ppo_gocu_model_{i}"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
-                                             model_attrs=json.loads(extra))
+        thunks.append((f"ppo_gocu_model_{i}", lambda extra=extra: run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs,
+                                                                       args.gocu_model, model_attrs={**base_model, **json.loads(extra)})))
         labels_extra[f"ppo_gocu_model_{i}"] = extra
     for i, extra in enumerate(args.also_curiosity_kwargs or []):
-        results[f"ppo_gocu_curiosity_{i}"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
-                                                 overrides=json.loads(extra))
+        thunks.append((f"ppo_gocu_curiosity_{i}", lambda extra=extra: run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs,
+                                                                           args.gocu_model, overrides=json.loads(extra), model_attrs=base_model)))
         labels_extra[f"ppo_gocu_curiosity_{i}"] = extra
     for i, (text, arm) in enumerate(zip(args.also_arm or [], arms)):
-        results[f"ppo_gocu_arm_{i}"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
-                                           overrides=arm.get("curiosity"), model_attrs=arm.get("model"))
+        thunks.append((f"ppo_gocu_arm_{i}", lambda arm=arm: run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
+                                                                 overrides=arm.get("curiosity"), model_attrs={**base_model, **arm.get("model", {})})))
         labels_extra[f"ppo_gocu_arm_{i}"] = text
-    if args.also_sync:
-        results["ppo_gocu_sync"] = run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model, async_scoring=False)
+    for name, thunk in (reversed(thunks) if args.reverse else thunks):
+        results[name] = thunk()
+        print(f"{name}: {results[name]['steps_per_s']:.0f} steps/s", flush=True)
     ppo, gocu = results["ppo"], results["ppo_gocu"]
     print(f"\n{args.env}, {args.timesteps} steps, 16 envs")
     print(f"raw env (random actions)      {raw:8.0f} steps/s")
     print(f"plain PPO                     {ppo['steps_per_s']:8.0f} steps/s")
     print(f"PPO_GoCu                      {gocu['steps_per_s']:8.0f} steps/s")
     print(f"time per step, GoCu / PPO     {ppo['steps_per_s'] / gocu['steps_per_s']:8.2f}x")
-    extras = [k for k in ("ppo_gocu_background", "ppo_gocu_in_place", "ppo_gocu_sync", *labels_extra) if k in results]
-    labels = {"ppo_gocu_background": "background updates", "ppo_gocu_in_place": "updates in place",
-              "ppo_gocu_sync": "synchronous scoring", **labels_extra}
+    extras = list(labels_extra)
+    labels = labels_extra
     for k in extras:
         r = results[k]
         print(f"PPO_GoCu, {labels[k]:20s}{r['steps_per_s']:8.0f} steps/s  ({ppo['steps_per_s'] / r['steps_per_s']:.2f}x PPO's time per step)")
@@ -257,21 +247,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         extra = "".join(f"  {results[k].get(key, 0.0):20.1f}" for k in extras)
         print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}{extra}")
     print(f"  {'weights_sha256':28s} {ppo['weights_sha256']:>7s}  {gocu['weights_sha256']:>9s}" + "".join(f"  {results[k]['weights_sha256']:>20s}" for k in extras))
-    for key in ("steps_queued_behind_updates", "tickets_spilled"):
+    for key in ("tickets_spilled",):
         extra = "".join(f"  {results[k].get(key, 0.0):20.0f}" for k in extras)
         print(f"  {key:28s} {'':7s}  {gocu.get(key, 0.0):9.0f}{extra}")
     print("  (curiosity_inference_s: the rollout's own time in the module, waiting_for_worker_s included: the part it waited")
-    print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker thread, overlapping the next")
+    print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker process, overlapping the next")
     print("   env step (async_scoring), not on the critical path unless waited for; scoring_in_worker_cpu_s: the worker's")
     print("   CPU time in it, the rest of its wall time it waited for the GIL (or a core))")
     print("  (end_of_learn_wait_s: learn's end waiting for an update still running; other_s: the rest of learn, outside the")
     print("   rollouts, PPO's updates, pretraining and that wait)")
-    print("  (with background updates, VAE/predictor training overlaps the rollouts; by default (overlap_ppo_update) it overlaps")
-    print("   PPO's update and the next rollout waits for the rest: only the waits are on the critical path)")
+    print("  (VAE/predictor training overlaps PPO's update and the next rollout waits for the rest: only the waits are on")
+    print("   the critical path)")
     print("  (curiosity_updates_s: time the rollouts waited for VAE/predictor updates; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")
-    print("  (steps_queued_behind_updates: rollout steps that waited in the module's queue while an update ran beside the env")
-    print("   stepping (queue_during_update); tickets_spilled: steps scored in the training thread instead of the scoring process")
+    print("  (tickets_spilled: steps scored in the training thread instead of the scoring process")
     print("   (spill_scoring))")
     print(f"  (pretrain_s is the whole random-policy pretraining phase (measured, not a remainder); "
           f"reward cache hit rate {gocu['cache_hit_rate']:.2f})")

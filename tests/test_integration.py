@@ -95,8 +95,9 @@ def test_plain_sb3_algorithms_train_with_sum_mode(algo):
     model.learn(640, callback=Spy())
     assert venv.module.pretrained and venv.module.last_predictor_update > 0
     rewards, extrinsic, intrinsic = map(np.stack, zip(*seen))
-    # what the algorithm sees differs from the extrinsic reward by exactly the reported r_gc
-    assert np.allclose(rewards - extrinsic, intrinsic, atol=1e-6)
+    # what the algorithm sees differs from the extrinsic reward by exactly sigma x the reported r_gc (sigma 0.25 by default)
+    assert venv.intrinsic_coef == PPO_GoCu("MlpPolicy", chain_venv()).intrinsic_coef == 0.25
+    assert np.allclose(rewards - extrinsic, 0.25 * intrinsic, atol=1e-6)
     assert np.abs(intrinsic).max() > 0
 
 
@@ -129,7 +130,7 @@ def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():
         _, r, _, infos = venv.step(np.ones(2, dtype=np.int64))
         total += r.sum()
         extrinsic += sum(i["extrinsic_reward"] for i in infos)
-        assert np.allclose(r, [i["extrinsic_reward"] + i["gocu_reward"] for i in infos], atol=1e-6)
+        assert np.allclose(r, [i["extrinsic_reward"] + 0.25 * i["gocu_reward"] for i in infos], atol=1e-6)
     assert total > extrinsic
     # PPO_GoCu with a sum-mode wrapper would count curiosity twice: refused
     with pytest.raises(ValueError, match="separate"):

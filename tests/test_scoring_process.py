@@ -192,17 +192,17 @@ def test_a_dead_scoring_process_is_a_clear_error():
 
 def test_the_scoring_process_is_a_cpu_modules_and_starts_with_learn():
     """A CPU module on this (POSIX) machine scores in a process; PPO_GoCu starts it at learn's start (beside
-    pretraining). A module on another device scores in the caller and refuses to start one."""
+    pretraining). A module that scores in the caller (on a GPU, tests/test_device.py) refuses to start one."""
     assert GoalCuriosityModule(SPACE, **SMALL_CURIOSITY).scorer.use_process
     env = make_vec_env(lambda: ChainEnv(), n_envs=2, seed=0)
     model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=1, seed=0, curiosity_kwargs=SMALL_CURIOSITY)
     assert model.curiosity.scorer.process is None
     model.learn(64)
     assert model.curiosity.scorer.process is not None and model.curiosity.scorer.process.bytes_sent > 0
-    meta = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY, device="meta")
-    assert not meta.scorer.use_process
+    in_caller = GoalCuriosityModule(SPACE, **SMALL_CURIOSITY)
+    in_caller.scorer.use_process = False
     with pytest.raises(ValueError, match="scores in the caller"):
-        meta.start_scoring_process()
+        in_caller.start_scoring_process()
     with pytest.raises(ValueError, match="num_threads must be >= 1"):
         ProcessScorer(None, num_threads=0)
 

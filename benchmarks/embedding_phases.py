@@ -36,6 +36,8 @@ left as it was.
 
 from __future__ import annotations
 
+import dataclasses
+
 import argparse
 import json
 import platform
@@ -49,6 +51,7 @@ import numpy as np
 import torch as th
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
+from sb3_gocu.curiosity.training import Trainer
 from sb3_gocu import PPO_GoCu
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "examples"))
@@ -140,8 +143,8 @@ def check_refit(spec: Any) -> None:
 
 
 def refit_vae(module: Any, spec: dict[str, Any], seed: int = 0) -> tuple[th.nn.Module, dict[str, Any]]:
-    """A VAE retrained on ``module``'s memory bank as a VAE update would (:meth:`_prepare_vae` and :meth:`_fit_vae`
-    of the module), with the settings of ``spec``; the module's own VAE, optimiser and settings are put back.
+    """A VAE retrained on ``module``'s memory bank as a VAE update would (the module's :class:`Trainer`, its
+    generators), with the settings of ``spec``; the module's own VAE and optimiser are left as they were.
 
     :return: the retrained VAE and the fit's record (``epochs_run``, ``time``, ``losses``, ...)
     """
@@ -153,21 +156,16 @@ def refit_vae(module: Any, spec: dict[str, Any], seed: int = 0) -> tuple[th.nn.M
         vae = type(module.vae)(module.adapter.input_shape, embed_dim=module.vae.fc.out_features, latent_dim=latent)
     if not fresh:
         vae.load_state_dict(module.vae.state_dict())
-    saved = {name: getattr(module, name) for name in ("vae", "vae_optimizer", "vae_beta", "vae_pixel_weighting", "last_vae_update")}
-    lr = module.vae_optimizer.param_groups[0]["lr"]
-    try:
-        module.vae, module.vae_optimizer = vae, th.optim.Adam(vae.parameters(), lr=lr)
-        module.vae_beta = float(spec.get("vae_beta", module.vae_beta))
-        module.vae_pixel_weighting = float(spec.get("vae_pixel_weighting", module.vae_pixel_weighting))
-        job = module._prepare_vae(spec.get("vae_epochs"), patience=int(spec.get("vae_patience", 0)))
-        if job is None:
-            raise ValueError("the model's memory bank is empty: nothing to retrain the VAE on")
-        job.pop("threads", None)
-        fit = module._fit_vae(**job)
-    finally:
-        for name, value in saved.items():
-            setattr(module, name, value)
-    return vae.eval().requires_grad_(False), fit
+    config = dataclasses.replace(module.config, vae_beta=float(spec.get("vae_beta", module.vae_beta)))
+    trainer = Trainer(vae, module.predictor, config, module.adapter, module.device, module.trainer.generator)
+    pixel_weighting = float(spec.get("vae_pixel_weighting", module.vae_pixel_weighting))
+    job = trainer.vae_job(module.memory.observations[: module.memory.size], module.rng, pixel_weighting, spec.get("vae_epochs"),
+                          patience=int(spec.get("vae_patience", 0)))
+    if job is None:
+        raise ValueError("the model's memory bank is empty: nothing to retrain the VAE on")
+    job.threads = None
+    fit = trainer.fit_vae(job)
+    return vae.eval().requires_grad_(False), dataclasses.asdict(fit)
 
 
 def measure(model_path: str, env_id: str, layouts: int, refits: Sequence[dict[str, Any]], seed: int = 0) -> dict[str, Any]:

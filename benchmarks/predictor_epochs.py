@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import platform
 import sys
 import time
@@ -33,6 +34,7 @@ import numpy as np
 import torch as th
 
 import sb3_gocu  # noqa: F401
+from sb3_gocu.curiosity.training import Trainer
 from sb3_gocu import PPO_GoCu
 
 
@@ -67,21 +69,22 @@ def probe(path: str, pairs: Sequence[int], epochs: int, val_pairs: int, seed: in
         collect(model, env_id or "GoCu/DoorKey-8x8-v0", collect_steps, n_envs, seed)
     if len(mod.trajectories) < 2:
         raise SystemExit(f"{path}: the module holds no trajectories (a VAE update clears them); use --collect STEPS")
-    start = copy.deepcopy((mod.predictor.state_dict(), mod.predictor_optimizer.state_dict()))
+    start = copy.deepcopy((mod.predictor.state_dict(), mod.trainer.predictor_optimizer.state_dict()))
     vs, vg, vd = mod.trajectories.sample_pairs(val_pairs, mod.max_distance, np.random.default_rng(seed + 1), first_visit=mod.first_visit_distance)
     mod.predictor.eval()
-    v_target = mod.label_pairs(vs, vg, vd)
+    v_target = mod.trainer.label_pairs(vs, vg, vd)
     with th.no_grad():
         m0 = mod.predictor.mastery(vs, vg)
     curves: dict[int, list[dict[str, float]]] = {}
     masteries: dict[int, list[th.Tensor]] = {}
     for budget in pairs:
         mod.predictor.load_state_dict(start[0])
-        mod.predictor_optimizer.load_state_dict(start[1])
-        mod.rng = np.random.default_rng(seed)
-        mod._torch_gen.manual_seed(seed)
-        mod.predictor_pairs, mod.predictor_epochs = budget, epochs
-        job = mod._prepare_predictor()
+        # the module's own training code, with this budget and epoch count
+        config = dataclasses.replace(mod.config, predictor_pairs=budget, predictor_epochs=epochs)
+        trainer = Trainer(mod.vae, mod.predictor, config, mod.adapter, mod.device, th.Generator().manual_seed(seed))
+        trainer.predictor_optimizer.load_state_dict(start[1])
+        pairs_drawn = mod.trajectories.sample_pairs(budget, config.max_distance, np.random.default_rng(seed), first_visit=config.first_visit_distance)
+        job = trainer.predictor_job(*pairs_drawn)
         assert job is not None
         rows: list[dict[str, float]] = []
         ms: list[th.Tensor] = []
@@ -99,11 +102,11 @@ def probe(path: str, pairs: Sequence[int], epochs: int, val_pairs: int, seed: in
                 "train_s": clock["train"],
                 "val_loss": soft_cross_entropy(m, v_target),
                 "val_acc": float(((m > 0.5) == (v_target > 0.5)).float().mean()),
-                "distinct_pairs": float(len(job["phi_s"])),
+                "distinct_pairs": float(len(job.phi_s)),
             })
             clock["t"] = time.perf_counter()
 
-        mod._fit_predictor(**job, on_epoch=on_epoch)
+        trainer.fit_predictor(job, on_epoch=on_epoch)
         curves[budget], masteries[budget] = rows, ms
     ref = masteries[max(pairs)][-1]  # the largest budget's last epoch: the reference
     for budget, rows in curves.items():

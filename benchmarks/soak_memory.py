@@ -37,6 +37,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
+from sb3_gocu.curiosity.config import EPISODE_MEMORY
+from sb3_gocu.curiosity.scoring import PHI_MEMO_SIZE
 from sb3_gocu import PAPER_PPO_KWARGS, PPO_GoCu
 from sb3_gocu.checkpoints import GoCuCheckpointCallback
 
@@ -68,7 +70,7 @@ class RSSSampler(BaseCallback):
             print(
                 f"{self.num_timesteps:>9d} steps {self.samples[-1][1]:8.0f} s  RSS {r / MB:8.1f} MB  "
                 f"goals {m.goal_buffer.size}  memory {m.memory.size}  trajectories {len(m.trajectories)}  "
-                f"phi cache {len(m._phi_cache)}",
+                f"phi cache {len(m.scorer.phi_memo)}",
                 flush=True,
             )
             self._next_print += self.print_every
@@ -134,9 +136,9 @@ def main() -> None:
     print(
         f"stores at the end: goal buffer {m.goal_buffer.size}/{m.goal_buffer.capacity}, memory bank {m.memory.size}/"
         f"{m.memory.capacity}, trajectory store {len(m.trajectories)}/{m.trajectories.capacity * m.trajectories.n_envs}, "
-        f"embedding memo {len(m._phi_cache)}/{m.embedding_cache_size}, "
-        f"reward memos {sum(len(c) for c in m._reward_cache)} (<= {m.episode_memory} per env), "
-        f"finished episodes queued {len(m.finished_episodes)}"
+        f"embedding memo {len(m.scorer.phi_memo)}/{PHI_MEMO_SIZE}, "
+        f"reward memos {sum(len(c) for c in m.episodes.rewards)} (<= {EPISODE_MEMORY} per env), "
+        f"finished episodes queued {len(m.episodes.finished)}"
     )
     if args.csv:
         with open(args.csv, "w", newline="") as f:

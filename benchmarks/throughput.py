@@ -81,7 +81,7 @@ def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int) -> float:
 
 
 def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dict[str, Any], gocu_model: str | None = None,
-        async_scoring: bool = True, overrides: dict[str, Any] | None = None, model_attrs: dict[str, Any] | None = None) -> dict[str, float]:
+        overrides: dict[str, Any] | None = None, model_attrs: dict[str, Any] | None = None) -> dict[str, float]:
     """One arm: ``algo`` for ``timesteps`` steps; ``overrides``: curiosity settings that replace those of
     ``curiosity_kwargs`` (a fresh agent) or of the loaded model (``gocu_model``)."""
     overrides = overrides or {}
@@ -93,13 +93,12 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
     elif gocu_model is not None:
         # a trained agent: its policy moves (fewer repeated states, more scoring), its goal buffer is full
         model = PPO_GoCu.load(gocu_model, env=venv, device="cpu")
-        model.async_scoring = async_scoring
         if overrides:
             raise ValueError("--gocu-model: a loaded model keeps its curiosity settings (they are fixed at construction)")
     else:
         curiosity_kwargs = {**curiosity_kwargs, **overrides}
-        model = PPO_GoCu("CnnPolicy", venv, seed=seed, curiosity_kwargs=curiosity_kwargs, async_scoring=async_scoring, **PPO_SETTINGS)
-    for name, value in (model_attrs or {}).items():  # PPO_GoCu attributes (e.g. scoring_lag)
+        model = PPO_GoCu("CnnPolicy", venv, seed=seed, curiosity_kwargs=curiosity_kwargs, **PPO_SETTINGS)
+    for name, value in (model_attrs or {}).items():  # PPO_GoCu attributes (e.g. n_epochs)
         if not hasattr(model, name):
             raise ValueError(f"--also-model-kwargs: PPO_GoCu has no attribute {name!r}")
         setattr(model, name, value)
@@ -180,14 +179,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         "(its own curiosity settings, but for those the --also-* arms set; "
                         "no pretraining); plain PPO still starts afresh")
     parser.add_argument("--also-model-kwargs", action="append", default=None, metavar="JSON",
-                        help="also run PPO_GoCu with these PPO_GoCu attributes set, e.g. '{\"scoring_lag\": 1}' "
+                        help="also run PPO_GoCu with these PPO_GoCu attributes set, e.g. '{\"n_epochs\": 2}' "
                         "(another run each time the option is given)")
     parser.add_argument("--also-curiosity-kwargs", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with these GoalCuriosityModule keywords on top of --curiosity-kwargs, "
                         "e.g. '{\"scoring_process\": true}' (another run each time the option is given)")
     parser.add_argument("--also-arm", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with both kinds of setting, e.g. '{\"curiosity\": {\"scoring_dtype\": \"bfloat16\"}, "
-                        "\"model\": {\"scoring_lag\": 4}}' (another run each time the option is given)")
+                        "\"model\": {\"n_epochs\": 2}}' (another run each time the option is given)")
     args = parser.parse_args(argv)
     arms = [json.loads(a) for a in args.also_arm or []]
     for arm in arms:
@@ -252,7 +251,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print(f"  {key:28s} {'':7s}  {gocu.get(key, 0.0):9.0f}{extra}")
     print("  (curiosity_inference_s: the rollout's own time in the module, waiting_for_worker_s included: the part it waited")
     print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker process, overlapping the next")
-    print("   env step (async_scoring), not on the critical path unless waited for; scoring_in_worker_cpu_s: the worker's")
+    print("   env steps, not on the critical path unless waited for; scoring_in_worker_cpu_s: the worker's")
     print("   CPU time in it, the rest of its wall time it waited for the GIL (or a core))")
     print("  (end_of_learn_wait_s: learn's end waiting for an update still running; other_s: the rest of learn, outside the")
     print("   rollouts, PPO's updates, pretraining and that wait)")
@@ -260,8 +259,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print("   the critical path)")
     print("  (curiosity_updates_s: time the rollouts waited for VAE/predictor updates; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")
-    print("  (tickets_spilled: steps scored in the training thread instead of the scoring process")
-    print("   (spill_scoring))")
+    print("  (tickets_spilled: steps scored in the training thread because the scoring process was behind)")
     print(f"  (pretrain_s is the whole random-policy pretraining phase (measured, not a remainder); "
           f"reward cache hit rate {gocu['cache_hit_rate']:.2f})")
     if args.json:

@@ -5,7 +5,7 @@
     # a later update: the checkpoint's VAE, on observations of the checkpoint's own policy
     python benchmarks/vae_epochs.py <run>/checkpoints/ppo_gocu_seed0/model_<steps>.zip --collect 100000 --epochs 20
 
-Replays one VAE update (eq 8) with the module's own training code (``_fit_vae``: de-duplicated memory bank,
+Replays one VAE update (eq 8) with the module's own training code (``Trainer.fit_vae``: de-duplicated memory bank,
 multiplicities as weights, Adam state of the checkpoint) and measures after every epoch:
 
 * ``val loss``: the negative ELBO (reconstruction + beta KL, eval mode) on held-out observations: ``--val-frac``
@@ -27,7 +27,6 @@ bank keeps a random subset of ``memory_size``), i.e. the data of the next update
 from __future__ import annotations
 
 import argparse
-import copy
 import sys
 import time
 from typing import Any, Sequence
@@ -36,6 +35,7 @@ import numpy as np
 import torch as th
 
 import sb3_gocu  # noqa: F401
+from sb3_gocu.curiosity.training import VaeJob
 from sb3_gocu import PPO_GoCu
 from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.curiosity.module import EarlyStopping
@@ -63,11 +63,10 @@ def fresh_module(env_id: str, n_envs: int, seed: int) -> GoalCuriosityModule:
 
 
 def probe(mod: GoalCuriosityModule, epochs: int, val_frac: float, seed: int, references: np.ndarray | None) -> dict[str, Any]:
-    mod.vae_patience = 0  # the probe holds out its own observations and runs every epoch
-    job = mod._prepare_vae(epochs)
+    job = mod.vae_job(epochs, patience=0)  # the probe holds out its own observations and runs every epoch
     if job is None:
         raise SystemExit("the module's memory bank is empty")
-    data, weights = job["data"], job["weights"]
+    data, weights = job.data, job.weights
     rng = np.random.default_rng(seed)
     order = rng.permutation(len(data))
     n_val = max(1, int(round(val_frac * len(data))))
@@ -98,8 +97,8 @@ def probe(mod: GoalCuriosityModule, epochs: int, val_frac: float, seed: int, ref
         rows.append(m)
         clock["t"] = time.perf_counter()
 
-    mod._torch_gen.manual_seed(seed)
-    mod._fit_vae(train_data, train_w, epochs, on_epoch=on_epoch)
+    mod.trainer.generator.manual_seed(seed)
+    mod.trainer.fit_vae(VaeJob(train_data, train_w, epochs, pixel_weights=job.pixel_weights), on_epoch=on_epoch)
     ref = rows[-1]
     base = float((ref["phi"] - start["phi"]).norm(dim=1).mean())
     for r in rows:

@@ -4,9 +4,8 @@
     python examples/quickstart.py --timesteps 50000 --eval-episodes 20
 
 Trains with SB3's progress bar, evaluates the success rate of the trained policy, and saves the model
-(curiosity state included) to ``gocu_doorkey5.zip``. It trains with one torch thread (``--threads``): the
-curiosity's scoring process and updates run beside the training thread, and more threads each oversubscribe the
-cores (measured: README, "Use").
+(curiosity state included) to ``gocu_doorkey5.zip``. ``learn()`` trains with one torch thread on a CPU (README,
+"Use").
 """
 
 from __future__ import annotations
@@ -15,7 +14,6 @@ import argparse
 from typing import Sequence
 
 import numpy as np
-import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
@@ -30,11 +28,7 @@ def main(argv: Sequence[str] | None = None) -> tuple[PPO_GoCu, np.ndarray]:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--save", default="gocu_doorkey5")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads of this process (torch.set_num_threads)")
     args = parser.parse_args(argv)
-    if args.threads < 1:
-        parser.error(f"--threads must be >= 1, got {args.threads}")
-    th.set_num_threads(args.threads)
 
     env = make_vec_env(args.env, n_envs=PAPER_N_ENVS, seed=args.seed)  # the paper's 16 envs
     # the defaults are the paper's: PPO's settings (PAPER_PPO_KWARGS: n_steps 128, batch 256, 4 epochs, lr 1e-4,

@@ -6,7 +6,7 @@ Importing the package also registers the ``GoCu/...`` environment ids.
 
 from sb3_gocu.callbacks import GoCuCallback
 from sb3_gocu.checkpoints import GoCuCheckpointCallback, latest_checkpoint
-from sb3_gocu.curiosity import GoalCuriosityModule
+from sb3_gocu.curiosity import PAPER_CURIOSITY_KWARGS, CuriosityConfig, GoalCuriosityModule
 from sb3_gocu.envs import register_envs
 from sb3_gocu.policies import PaperCNN
 from sb3_gocu.ppo_gocu import PAPER_N_ENVS, PAPER_PPO_KWARGS, PPO_GoCu
@@ -21,7 +21,9 @@ __all__ = [
     "GoCuCheckpointCallback",
     "GoCuVecEnvWrapper",
     "GoCuWrapper",
+    "CuriosityConfig",
     "GoalCuriosityModule",
+    "PAPER_CURIOSITY_KWARGS",
     "PAPER_N_ENVS",
     "PAPER_PPO_KWARGS",
     "PPO_GoCu",

@@ -43,7 +43,8 @@ from sb3_gocu.buffers import GoCuDictRolloutBuffer, GoCuRolloutBuffer
 from sb3_gocu.callbacks import GoCuCallback
 from sb3_gocu.checkpoints import GlobalRNGState, check_model_file, read_env_state, save_model
 from sb3_gocu.curiosity import GoalCuriosityModule
-from sb3_gocu.curiosity.checks import DEFAULT_INTRINSIC_COEF, check_intrinsic_coef, is_flag, is_integer
+from sb3_gocu.curiosity.training import torch_threads
+from sb3_gocu.curiosity.checks import DEFAULT_INTRINSIC_COEF, check_intrinsic_coef, is_flag
 from sb3_gocu.policies import GoCuActorCriticCnnPolicy, GoCuActorCriticPolicy, GoCuMultiInputActorCriticPolicy
 from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module, find_gocu_wrappers
 
@@ -56,6 +57,9 @@ PAPER_PPO_KWARGS: Mapping[str, Any] = MappingProxyType(
     dict(n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2)
 )
 PAPER_N_ENVS = 16
+#: a rollout step's curiosity is collected this many steps after it was submitted, so the worker process scores
+#: up to this many steps while the envs step on (docs/results.md, "Speed-ups, each against its absence")
+SCORING_LAG = 4
 
 
 class PPO_GoCu(PPO):
@@ -65,43 +69,19 @@ class PPO_GoCu(PPO):
     ``batch_size``, ``n_epochs``, ``gamma``, ``gae_lambda``, ``clip_range``, ``ent_coef``, ``vf_coef``, ...); those
     of :data:`PAPER_PPO_KWARGS` default to the paper's values (n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
     gamma 0.99, vf 0.5, clip 0.2) instead of SB3's, the others to SB3's. The paper runs 16 envs
-    (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. On a
-    CPU, call ``torch.set_num_threads(1)`` first: the scoring process takes the caller's thread count and the
-    curiosity updates run in a thread beside the training, so torch's default of one thread per core oversubscribes
-    the cores (measured: README, "Use"). Plus:
+    (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. During
+    a rollout, a CPU module embeds and scores each step's new states in its worker process while the envs take the
+    next steps (the same rewards, bit for bit, as scoring in the training thread); a step's ``infos["gocu_*"]``
+    entries are written :data:`SCORING_LAG` steps later (the last ones at the rollout's end). Plus:
 
     :param policy: "MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a two-headed policy class
     :param env: an env id, an env, or a VecEnv; without a GoCu wrapper it is wrapped in a
-        :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``) holding a new module
-    :param intrinsic_coef: sigma of eq 10, weight of the curiosity advantage A_gc
-    :param intrinsic_episodic: whether the curiosity stream stops at episode ends (True) or runs across
-        them, RND-style (False, the default). r_gc is positive almost everywhere, so an episodic stream pays
-        the agent for *not* ending episodes: on DoorKey-5x5 (seed 0) it kept every episode at the 250-step
-        limit and the return at 0.0 at 120k steps, where the non-episodic stream learns the task
-    :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` (``n_goals``,
-        ``goal_strategy``, ``reward_scale``, ...); its ``intrinsic_gamma`` is the curiosity stream's discount
-    :param async_scoring: score the curiosity of each rollout step in the module's worker while the envs take the
-        next step: a process by default, a thread with ``curiosity_kwargs={"scoring_process": False}`` (see
-        :class:`~sb3_gocu.GoalCuriosityModule`). The rewards are the same bit for bit; a step's ``infos["gocu_*"]``
-        entries are written ``scoring_lag`` steps later (at the rollout end for the last steps; later still for
-        steps queued behind a curiosity update, ``queue_during_update``), so a callback reading them in ``on_step``
-        sees those of an earlier step. Used when the training env has one
-        :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``)
-    :param scoring_lag: (``async_scoring``) how many steps later a step's r_gc is collected: up to this many
-        steps are scored in the worker while the envs step on (>= 1). The number of states new to their
-        episode varies from step to step, so a deeper queue lets the worker catch up after a step with many
-        of them instead of the rollout waiting: on DoorKey-8x8 over 400k steps the rollouts waited 17.4 s for
-        the scores with 4 against 26.5 s with 1 (same run, README "Throughput"). The rewards are the same bit
-        for bit (the worker scores the steps in order; tested); a step's ``infos["gocu_*"]`` entries are
-        written ``scoring_lag`` steps later (the last ones at the rollout's end)
-    :param spill_scoring: (``async_scoring`` with the scoring process) when the process has ``scoring_lag - 1``
-        (at least 1) steps unscored as a new one comes, or so many answers due that sending would first wait,
-        score the new one in the training thread rather than wait for the process at a later collection
-        (``GoalCuriosityModule.scoring_spill``; ``scoring_lag - 1`` ran faster than ``scoring_lag`` on a trained
-        DoorKey-8x8 agent, 21.2 s against 22.4 s for 20k steps, three runs each). The process runs the same
-        operations on the same inputs with as many torch threads, so the rewards are the same bit for bit
-        (tested); it matters when the scoring is slower than the env steps (a trained agent meets few states
-        twice), README "Throughput"
+        :class:`~sb3_gocu.GoCuVecEnvWrapper` (``mode="separate"``) holding a new module on the model's device
+    :param intrinsic_coef: sigma of eq 10, weight of the curiosity advantage A_gc (>= 0)
+    :param intrinsic_episodic: whether the curiosity stream stops at episode ends (True) or runs across them,
+        RND-style (False: r_gc is positive almost everywhere, so an episodic stream pays for not finishing)
+    :param curiosity_kwargs: settings of :class:`~sb3_gocu.GoalCuriosityModule` (``n_goals``, ``goal_strategy``, ...;
+        :data:`~sb3_gocu.PAPER_CURIOSITY_KWARGS` for the paper's); its ``intrinsic_gamma`` discounts the curiosity stream
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -119,25 +99,13 @@ class PPO_GoCu(PPO):
         intrinsic_coef: float = DEFAULT_INTRINSIC_COEF,
         intrinsic_episodic: bool = False,
         curiosity_kwargs: dict[str, Any] | None = None,
-        async_scoring: bool = True,
-        scoring_lag: int = 4,
-        spill_scoring: bool = True,
         **kwargs: Any,
     ) -> None:
-        if not (is_integer(scoring_lag) and scoring_lag >= 1):
-            raise ValueError(f"scoring_lag must be an int >= 1, got {scoring_lag!r}")
-        self.scoring_lag = int(scoring_lag)
-        if not is_flag(spill_scoring):
-            raise ValueError(f"spill_scoring must be True or False, got {spill_scoring!r}")
-        self.spill_scoring = bool(spill_scoring)
         self.intrinsic_coef = check_intrinsic_coef(intrinsic_coef)
         if not is_flag(intrinsic_episodic):
             raise ValueError(f"intrinsic_episodic must be True or False, got {intrinsic_episodic!r}")
         self.intrinsic_episodic = bool(intrinsic_episodic)
-        if not is_flag(async_scoring):
-            raise ValueError(f"async_scoring must be True or False, got {async_scoring!r}")
-        self.async_scoring = bool(async_scoring)
-        if curiosity_kwargs is not None and not isinstance(curiosity_kwargs, dict):
+        if curiosity_kwargs is not None and not isinstance(curiosity_kwargs, Mapping):
             raise TypeError(
                 f"curiosity_kwargs must be a dict of GoalCuriosityModule keywords, got {type(curiosity_kwargs).__name__} "
                 f"{curiosity_kwargs!r} (in an rl-zoo3 YAML file write it as a mapping, not a 'dict(...)' string)"
@@ -289,7 +257,7 @@ class PPO_GoCu(PPO):
         waiting: deque[tuple[tuple, int | None]] = deque()  # steps whose r_gc is still being scored: (deferred, buffer row)
         if gocu is not None:
             gocu.defer = True
-            gocu.module.scorer.spill = max(1, self.scoring_lag - 1) if getattr(self, "spill_scoring", True) else None
+            gocu.module.scorer.spill = SCORING_LAG - 1  # the process that far behind: the next step is scored here
         try:
             while n_steps < n_rollout_steps:
                 if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
@@ -311,7 +279,7 @@ class PPO_GoCu(PPO):
                 if gocu is not None:
                     waiting.append((gocu.deferred, None))
                     gocu.deferred = None
-                    while len(waiting) > self.scoring_lag:
+                    while len(waiting) > SCORING_LAG:
                         self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
                     intrinsic = np.zeros(env.num_envs, dtype=np.float32)
                 else:
@@ -364,10 +332,8 @@ class PPO_GoCu(PPO):
         return True
 
     def _deferring_wrapper(self, env: VecEnv) -> GoCuVecEnvWrapper | None:
-        """The env's GoCu wrapper if its scoring can overlap the next env step: ``async_scoring``, one
+        """The env's GoCu wrapper if its scoring can overlap the next env steps: one
         :class:`GoCuVecEnvWrapper` in ``"separate"`` mode holding this model's module, and no per-env wrappers."""
-        if not getattr(self, "async_scoring", False):
-            return None
         wrappers = find_gocu_wrappers(env)
         if len(wrappers) == 1 and isinstance(wrappers[0], GoCuVecEnvWrapper) and wrappers[0].mode == "separate" and wrappers[0].module is self.curiosity:
             return wrappers[0]
@@ -389,17 +355,21 @@ class PPO_GoCu(PPO):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfPPOGoCu:
-        if self.curiosity is not None and self.curiosity.scorer.use_process and self.env is not None and self._deferring_wrapper(self.env) is not None:
-            self.curiosity.start_scoring_process()  # starts beside pretraining
-        if reset_num_timesteps:
-            self.global_rng.pending = None
-        else:
-            self.global_rng.restore()  # a loaded model continues with the random numbers of the saved run
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
+        """SB3's ``learn``, with one torch thread on a CPU device: the scoring process and the curiosity updates run
+        beside the training thread, and more threads oversubscribe the cores (docs/results.md, "Threads"). The
+        caller's thread count is restored when it returns."""
+        with torch_threads(1 if self.device.type == "cpu" else None):
+            if self.curiosity is not None and self.curiosity.scorer.use_process and self.env is not None and self._deferring_wrapper(self.env) is not None:
+                self.curiosity.start_scoring_process()  # starts beside pretraining, with this thread's count
+            if reset_num_timesteps:
+                self.global_rng.pending = None
+            else:
+                self.global_rng.restore()  # a loaded model continues with the random numbers of the saved run
+            return super().learn(
+                total_timesteps=total_timesteps,
+                callback=callback,
+                log_interval=log_interval,
+                tb_log_name=tb_log_name,
+                reset_num_timesteps=reset_num_timesteps,
+                progress_bar=progress_bar,
+            )

@@ -4,8 +4,6 @@
 import csv
 import json
 import shutil
-import sys
-import time
 
 import numpy as np
 import pytest
@@ -381,12 +379,12 @@ def test_embedding_phases_refit_leaves_the_model_as_it_was(ep, two_runs):
 
     module = PPO_GoCu.load(model, device="cpu").curiosity
     before = {k: v.clone() for k, v in module.vae.state_dict().items()}
-    optimiser, beta, last = module.vae_optimizer, module.vae_beta, module.last_vae_update
+    optimiser, beta, last = module.trainer.vae_optimizer, module.vae_beta, module.last_vae_update
     vae, fit = ep.refit_vae(module, {"vae_epochs": 2, "vae_beta": 0.5})
     assert fit["epochs_run"] == 2 and vae is not module.vae
     assert any(not th.equal(before[k], v) for k, v in vae.state_dict().items())
     assert all(th.equal(before[k], v) for k, v in module.vae.state_dict().items())
-    assert module.vae_optimizer is optimiser and module.vae_beta == beta and module.last_vae_update == last
+    assert module.trainer.vae_optimizer is optimiser and module.vae_beta == beta and module.last_vae_update == last
     fresh, _ = ep.refit_vae(module, {"vae_epochs": 1, "latent_dim": 3})
     assert fresh.mu.out_features == 3
     with pytest.raises(ValueError, match="vae_lr"):
@@ -417,28 +415,29 @@ def test_split_updates_benchmark_finds_the_same_weights():
 
 
 def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_time_options(tmp_path):
-    """benchmarks/throughput.py, tiny (DoorKey-5x5, 4,096 steps, tiny curiosity, updates overlapping PPO's): an arm
-    that changes only the wall time (``queue_during_update=False``) trains the same weights as the defaults, an arm
-    that changes the training (another ``predictor_lr``) does not, and each arm's time is split into its parts."""
+    """benchmarks/throughput.py, tiny (DoorKey-5x5, 4,096 steps, tiny curiosity): a second arm with the defaults
+    trains the same weights (whatever the timing of the scoring process and the update thread), an arm that changes
+    the training (another ``predictor_lr``) does not, and each arm's time is split into its parts; ``--reverse``
+    runs the arms in the other order."""
     bench = load_script("throughput", "benchmarks/throughput.py")
     threads = th.get_num_threads()
-    curiosity = {**TINY_IMAGE_CURIOSITY, "overlap_ppo_update": True}
+    curiosity = TINY_IMAGE_CURIOSITY
     try:
         results = bench.main([
             "--env", "GoCu/DoorKey-5x5-v0", "--timesteps", "4096", "--threads", "1", "--malloc", "default",
             "--curiosity-kwargs", json.dumps(curiosity), "--json", str(tmp_path / "t.json"),
-            "--also-arm", json.dumps({"curiosity": {"queue_during_update": False}}),
+            "--reverse", "--also-arm", json.dumps({}),
             "--also-arm", json.dumps({"curiosity": {"predictor_lr": 1e-2}}),
         ])
     finally:
         th.set_num_threads(threads)
-    ppo, gocu, queue_off, other_lr = (results[k] for k in ("ppo", "ppo_gocu", "ppo_gocu_arm_0", "ppo_gocu_arm_1"))
-    assert gocu["weights_sha256"] == queue_off["weights_sha256"]
+    assert list(results) == ["ppo_gocu_arm_1", "ppo_gocu_arm_0", "ppo_gocu", "ppo"], "--reverse: the last arm first"
+    ppo, gocu, again, other_lr = (results[k] for k in ("ppo", "ppo_gocu", "ppo_gocu_arm_0", "ppo_gocu_arm_1"))
+    assert gocu["weights_sha256"] == again["weights_sha256"]
     assert len({ppo["weights_sha256"], gocu["weights_sha256"], other_lr["weights_sha256"]}) == 3
-    assert queue_off["steps_queued_behind_updates"] == 0
-    for r in (ppo, gocu, queue_off, other_lr):
+    for r in (ppo, gocu, again, other_lr):
         assert r["steps"] == 4096 and r["steps_per_s"] > 0 and r["env_s"] > 0 and r["ppo_update_s"] > 0
-    for r in (gocu, queue_off, other_lr):
+    for r in (gocu, again, other_lr):
         assert r["pretrain_s"] > 0 and r["scoring_in_worker_s"] > 0 and r["predictor_training_s"] > 0
     saved = json.loads((tmp_path / "t.json").read_text())
     assert saved["ppo_gocu"]["weights_sha256"] == gocu["weights_sha256"] and saved["command"][1:3] == ["--env", "GoCu/DoorKey-5x5-v0"]

@@ -154,7 +154,6 @@ def test_module_refuses_invalid_settings(kwargs, match):
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef=float("nan")), r"intrinsic_coef \(sigma\) must be a number >= 0"),
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_coef="0.25"), r"intrinsic_coef \(sigma\) must be a number >= 0, got '0.25'"),
         (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), intrinsic_episodic="yes"), r"intrinsic_episodic must be True or False, got 'yes'"),
-        (lambda: PPO_GoCu("MlpPolicy", chain_venv(1), async_scoring=None), r"async_scoring must be True or False, got None"),
         (lambda: GoCuVecEnvWrapper(chain_venv(1), mode="add"), r"mode must be one of \('sum', 'separate'\), got 'add'"),
         (lambda: GoCuWrapper(ChainEnv(), mode="add"), r"mode must be one of \('sum', 'separate'\)"),
         (lambda: GoCuVecEnvWrapper(chain_venv(1), intrinsic_coef=-1.0), r"intrinsic_coef \(sigma\) must be a number >= 0, got -1.0"),
@@ -190,9 +189,9 @@ def test_numpy_scalars_are_accepted_as_settings():
     module = GoalCuriosityModule(BOX, **{**SMALL_CURIOSITY, "n_goals": np.int64(3), "reward_scale": np.float32(4.0),
                                         "soft_labels": np.bool_(False), "vae_beta": np.float64(0.2)})
     assert (module.n_goals, module.reward_scale, module.soft_labels, module.vae_beta) == (3, 4.0, False, 0.2)
-    model = PPO_GoCu("MlpPolicy", chain_venv(1), n_steps=8, batch_size=8, intrinsic_coef=np.float64(0.5), scoring_lag=np.int64(2),
+    model = PPO_GoCu("MlpPolicy", chain_venv(1), n_steps=np.int64(8), batch_size=8, intrinsic_coef=np.float64(0.5),
                      curiosity_kwargs=SMALL_CURIOSITY)
-    assert (model.intrinsic_coef, model.scoring_lag) == (0.5, 2)
+    assert (model.intrinsic_coef, model.n_steps) == (0.5, 8)
 
 
 @pytest.mark.parametrize(
@@ -790,8 +789,9 @@ def test_state_dict_takes_the_scores_in_flight_first():
 
 @pytest.mark.parametrize("episodic", [False, True])
 def test_ppo_gocu_scoring_in_the_worker_process_matches_the_synchronous_run(episodic):
-    """async_scoring (r_gc scored while the envs take the next step) against the synchronous rollout: the same
-    buffer rewards, policy and module, bit for bit; infos carry the same gocu_* entries once the rollout ends."""
+    """r_gc scored in the worker process while the envs take the next steps, against every step scored in the
+    training thread: the same buffer rewards, policy and module, bit for bit; infos carry the same gocu_* entries
+    once the rollout ends."""
     runs, seen = [], []
 
     class Infos(BaseCallback):
@@ -799,14 +799,15 @@ def test_ppo_gocu_scoring_in_the_worker_process_matches_the_synchronous_run(epis
             self.steps = getattr(self, "steps", []) + [self.locals["infos"]]
             return True
 
-    for async_scoring in (True, False):
+    for in_process in (True, False):
         th.manual_seed(0)
         curiosity = dict(predictor_train_freq=128)
-        model = small_model(curiosity=curiosity, async_scoring=async_scoring, intrinsic_episodic=episodic)
+        model = small_model(curiosity=curiosity, intrinsic_episodic=episodic)
+        model.curiosity.scorer.use_process = in_process
         model.env.envs[0].unwrapped.max_steps = 7  # truncations: the episodic stream bootstraps its head
         cb = Infos()
         model.learn(256, callback=cb)
-        assert (model._deferring_wrapper(model.env) is not None) == async_scoring
+        assert (model.curiosity.scorer.process is not None) == in_process
         runs.append(model)
         seen.append([[info["gocu_reward"] for info in infos] for infos in cb.steps])
     a, b = runs

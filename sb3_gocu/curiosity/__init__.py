@@ -1,5 +1,6 @@
 """The curiosity maths of GoCu on tensors alone (torch, numpy and gymnasium spaces; no Stable-Baselines3)."""
 
+from sb3_gocu.curiosity.config import PAPER_CURIOSITY_KWARGS, CuriosityConfig
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES, GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.module import GoalCuriosityModule
 from sb3_gocu.curiosity.networks import ConvVAE, FoldedPredictor, MasteryPredictor, MlpVAE, PixelWeights, mastery_loss, vae_loss
@@ -17,6 +18,8 @@ from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore
 
 __all__ = [
     "AGGREGATIONS",
+    "PAPER_CURIOSITY_KWARGS",
+    "CuriosityConfig",
     "GOAL_STRATEGIES",
     "ConvVAE",
     "FoldedPredictor",

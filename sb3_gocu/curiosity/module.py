@@ -31,7 +31,8 @@ from gymnasium import spaces
 
 from sb3_gocu.curiosity.checks import check
 from sb3_gocu.curiosity.config import DEFAULT_PIXEL_WEIGHTING, CuriosityConfig
-from sb3_gocu.curiosity.episodes import Episodes, memo_from_state, memo_to_state
+from sb3_gocu.curiosity import persistence
+from sb3_gocu.curiosity.episodes import Episodes
 from sb3_gocu.curiosity.goals import GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE
 from sb3_gocu.curiosity.observations import ObservationAdapter
@@ -39,7 +40,7 @@ from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, revisit_factor
 from sb3_gocu.curiosity.scoring import Scorer, ScoringTicket, eq13_rows
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, observation_key
 from sb3_gocu.curiosity.training import (
-    FitThread, PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update, mean_or_nan, nonfinite_entries,
+    FitThread, PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update,
 )
 
 #: keywords of earlier versions, retired because they did not pay (docs/results.md says what each gave)
@@ -370,8 +371,7 @@ class GoalCuriosityModule:
             self._refresh_active_goals()
         dt = fit.time + time.perf_counter() - t0
         self.time_vae += dt
-        out = {"vae_loss": mean_or_nan(fit.losses), "vae_distinct_observations": float(fit.n), "vae_skipped_updates": float(fit.skipped),
-               "vae_epochs_run": float(fit.epochs_run), "vae_best_epoch": float(fit.best_epoch), "vae_val_loss": fit.val_loss, "vae_time": dt}
+        out = fit.stats(dt)
         self.stats.update(out)
         return out
 
@@ -384,9 +384,7 @@ class GoalCuriosityModule:
         self._refresh_active_goals()
         dt = fit.time + time.perf_counter() - t0
         self.time_predictor += dt
-        out = {"predictor_loss": mean_or_nan(fit.losses), "predictor_accuracy": mean_or_nan(fit.accs), "mastered_fraction": fit.mastered,
-               "predictor_pairs": float(fit.drawn), "predictor_distinct_pairs": float(fit.n), "predictor_skipped_updates": float(fit.skipped),
-               "predictor_time": dt}
+        out = fit.stats(dt)
         self.stats.update(out)
         return out
 
@@ -491,26 +489,7 @@ class GoalCuriosityModule:
     def state_dict(self) -> dict[str, Any]:
         """Everything the module learned and remembers, as tensors and plain Python values (loadable with
         ``torch.load(..., weights_only=True)``). Scores in flight and an update still running are taken first."""
-        self.collect_all()
-        self.finish_updates()
-        return {
-            "vae": self.vae.state_dict(),
-            "vae_optimizer": self.trainer.vae_optimizer.state_dict(),
-            "predictor": self.predictor.state_dict(),
-            "predictor_optimizer": self.trainer.predictor_optimizer.state_dict(),
-            "goal_buffer": self.goal_buffer.state_dict(),
-            "memory": self.memory.state_dict(),
-            "trajectories": self.trajectories.state_dict(),
-            "normalizer": self.normalizer.state_dict(),
-            "rng": self.rng.bit_generator.state,
-            "torch_rng": self.trainer.generator.get_state(),
-            "envs": self.episodes.state_dict(),
-            "phi_cache": memo_to_state(self.scorer.phi_memo),
-            # the loss the VAE trains with goes with the VAE, so a resumed run keeps it (see load_state_dict)
-            "settings": {"vae_pixel_weighting": self.vae_pixel_weighting},
-            "counters": {"pretrained": self.pretrained, "n_recorded_steps": self.n_recorded_steps,
-                         "last_vae_update": self.last_vae_update, "last_predictor_update": self.last_predictor_update},
-        }
+        return persistence.module_state(self)
 
     def load_state_dict(self, state: dict[str, Any], strict: bool = True) -> None:
         """Restore a :meth:`state_dict`.
@@ -518,61 +497,4 @@ class GoalCuriosityModule:
         :param state: what :meth:`state_dict` returned
         :param strict: as for ``torch.nn.Module.load_state_dict`` (accepted for SB3's ``set_parameters``)
         """
-        missing = {"vae", "predictor", "goal_buffer", "memory", "normalizer", "counters"} - set(state)
-        if missing:
-            raise ValueError(f"curiosity state is missing {sorted(missing)}: not a GoalCuriosityModule state_dict")
-        for net in ("vae", "predictor"):
-            bad = nonfinite_entries(state[net])
-            if bad:
-                raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
-        self.collect_all()
-        self.finish_updates()
-        self.vae.load_state_dict(state["vae"], strict=strict)
-        self.scorer.phi_memo.clear()
-        self.predictor.load_state_dict(state["predictor"], strict=strict)
-        for name, optimizer in (("vae_optimizer", self.trainer.vae_optimizer), ("predictor_optimizer", self.trainer.predictor_optimizer)):
-            if name in state:
-                optimizer.load_state_dict(state[name])
-                for group in optimizer.param_groups:  # a state saved before foreach was on keeps the multi-tensor step
-                    group["foreach"] = True
-        self.vae.eval()
-        self._encoder = self._frozen_encoder()
-        self.predictor.eval()
-        self.goal_buffer.load_state_dict(state["goal_buffer"])
-        self.memory.load_state_dict(state["memory"])
-        self.normalizer.load_state_dict(state["normalizer"])
-        if "rng" in state:
-            self.rng.bit_generator.state = state["rng"]
-        if "torch_rng" in state:
-            self.trainer.generator.set_state(state["torch_rng"])
-        settings = state.get("settings", {})
-        if "vae_pixel_weighting" in settings:
-            self.vae_pixel_weighting = float(settings["vae_pixel_weighting"])
-        elif not self._pixel_weighting_given:
-            self.vae_pixel_weighting = 0.0  # saved before the weighting existed: the VAE trained without it
-        c = state["counters"]
-        self.pretrained = bool(c["pretrained"])
-        self.n_recorded_steps = int(c["n_recorded_steps"])
-        self.last_vae_update = int(c["last_vae_update"])
-        self.last_predictor_update = int(c["last_predictor_update"])
-        self._folded = self.predictor.fold()
-        envs = state.get("envs")
-        if envs is not None:
-            n = int(envs["episode_ids"].shape[0])
-            cfg = self.config
-            stamp = self.episodes.goal_stamp  # goal versions go on rising: the scoring process compares them
-            self.episodes = Episodes(cfg.n_goals, self.adapter.raw_shape, self.adapter.raw_dtype, self.predictor.hidden[0].out_features)
-            self.episodes.goal_stamp = stamp
-            self.scorer.episodes, self.scorer.pending = self.episodes, []
-            self.trajectories = TrajectoryStore(cfg.predictor_train_freq, cfg.embed_dim, min_per_env=2 * cfg.max_distance)
-            self.normalizer.returns = self.normalizer.returns[:0]
-            rng_state = self.rng.bit_generator.state
-            self.ensure_envs(n)  # allocates; the goals it draws are overwritten below
-            self.rng.bit_generator.state = rng_state
-            self.normalizer.load_state_dict(state["normalizer"])
-            self.episodes.load_state_dict(envs)
-            self.trajectories.load_state_dict(state["trajectories"])
-            self._refresh_active_goals()
-            self.episodes.load_memos(envs)
-        if "phi_cache" in state:
-            self.scorer.phi_memo.update(memo_from_state(state["phi_cache"]))
+        persistence.load_module_state(self, state, strict)

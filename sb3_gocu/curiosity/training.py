@@ -97,6 +97,12 @@ class VaeFit:
     val_loss_start: float  #: held-out loss before the fit (NaN without early stopping)
     val_loss: float  #: best held-out loss (NaN without early stopping)
 
+    def stats(self, seconds: float) -> dict[str, float]:
+        """The figures logged for the update (``seconds``: its whole time)."""
+        return {"vae_loss": mean_or_nan(self.losses), "vae_distinct_observations": float(self.n), "vae_skipped_updates": float(self.skipped),
+                "vae_epochs_run": float(self.epochs_run), "vae_best_epoch": float(self.best_epoch), "vae_val_loss": self.val_loss,
+                "vae_time": seconds}
+
 
 @dataclasses.dataclass
 class PredictorJob:
@@ -122,6 +128,12 @@ class PredictorFit:
     drawn: int  #: pairs drawn
     mastered: float  #: weighted fraction of pairs labelled mastered
     time: float
+
+    def stats(self, seconds: float) -> dict[str, float]:
+        """The figures logged for the update (``seconds``: its whole time)."""
+        return {"predictor_loss": mean_or_nan(self.losses), "predictor_accuracy": mean_or_nan(self.accs), "mastered_fraction": self.mastered,
+                "predictor_pairs": float(self.drawn), "predictor_distinct_pairs": float(self.n), "predictor_skipped_updates": float(self.skipped),
+                "predictor_time": seconds}
 
 
 def snapshot(network: th.nn.Module, optimizer: th.optim.Optimizer) -> Snapshot:

@@ -404,7 +404,7 @@ class GoalCuriosityModule:
         """
         self.finish_updates()
         job = self.vae_job(epochs, patience)
-        return {} if job is None else self._take_vae(self.trainer.fit_vae(job))
+        return {} if job is None else self.use_fits(FitThread(self.trainer, [job]).take())
 
     def train_predictor(self) -> dict[str, float]:
         """Draw pairs (s_t, s_{t+y}), label them with eq 15-16 and train the predictor now.
@@ -413,7 +413,7 @@ class GoalCuriosityModule:
         """
         self.finish_updates()
         job = self.predictor_job()
-        return {} if job is None else self._take_predictor(self.trainer.fit_predictor(job))
+        return {} if job is None else self.use_fits(FitThread(self.trainer, [job]).take())
 
     def pretrain(self) -> dict[str, float]:
         """Train the VAE on what the memory bank holds (the random-policy observations) for all ``vae_epochs``

@@ -1,4 +1,4 @@
-"""glibc's allocator thresholds, fixed for a benchmark process (``throughput.py``, ``split_updates.py``)."""
+"""glibc's allocator thresholds, fixed for a benchmark process (``throughput.py``)."""
 
 from __future__ import annotations
 

@@ -38,7 +38,7 @@ import sb3_gocu  # noqa: F401
 from sb3_gocu.curiosity.training import VaeJob
 from sb3_gocu import PPO_GoCu
 from sb3_gocu.curiosity import GoalCuriosityModule
-from sb3_gocu.curiosity.module import EarlyStopping
+from sb3_gocu.curiosity.training import EarlyStopping
 from sb3_gocu.curiosity.networks import vae_loss
 
 from predictor_epochs import collect  # noqa: E402  (same directory)

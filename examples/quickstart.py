@@ -31,8 +31,9 @@ def main(argv: Sequence[str] | None = None) -> tuple[PPO_GoCu, np.ndarray]:
     args = parser.parse_args(argv)
 
     env = make_vec_env(args.env, n_envs=PAPER_N_ENVS, seed=args.seed)  # the paper's 16 envs
-    # the defaults are the paper's: PPO's settings (PAPER_PPO_KWARGS: n_steps 128, batch 256, 4 epochs, lr 1e-4,
-    # ent 0.01, ...), sigma = 0.25 (eq 10) and the module's (K = 50 goals, a buffer of 1500, "proportional", delta 10)
+    # the defaults are the paper's PPO settings (PAPER_PPO_KWARGS: n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
+    # ...), sigma = 0.25 (eq 10) and the paper's curiosity settings (K = 50 goals, a buffer of 1500, "proportional",
+    # delta 10) but for the measured departures that PAPER_CURIOSITY_KWARGS undoes
     model = PPO_GoCu("CnnPolicy", env, seed=args.seed, verbose=1)
     model.learn(args.timesteps, progress_bar=True)
     model.save(args.save)

@@ -273,7 +273,7 @@ class PPO_GoCu(PPO):
                     else:
                         clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
 
-                # with a deferring wrapper, r_gc of this step is scored in a worker thread while the envs take the
+                # with a deferring wrapper, r_gc of this step is scored in the worker process while the envs take the
                 # next step; it is added to its buffer row then (the row holds 0 or the truncation bootstrap until then)
                 new_obs, rewards, dones, infos = env.step(clipped_actions)
                 if gocu is not None:

@@ -2,22 +2,21 @@
 
 Every flag is rl-zoo3's (``python -m sb3_gocu.train --help``). Without ``-conf/--conf-file`` the hyperparameters
 come from the repository's ``hyperparams/ppo_gocu.yml`` (``--algo ppo_gocu``) or ``hyperparams/ppo.yml``
-(``--algo ppo`` on an id it lists); see :func:`sb3_gocu.zoo.default_conf_file`. Without ``--num-threads`` a run
-trains with one torch thread (:func:`sb3_gocu.zoo.with_default_threads`; rl-zoo3's own default keeps torch's one
-per core, which PPO_GoCu's scoring process and updates oversubscribe).
+(``--algo ppo`` on an id it lists); see :func:`sb3_gocu.zoo.default_conf_file`. ``PPO_GoCu.learn`` trains with one
+torch thread on a CPU whatever ``--num-threads`` says.
 """
 
 from __future__ import annotations
 
 import sys
 
-from sb3_gocu.zoo import register_zoo, with_default_conf, with_default_threads
+from sb3_gocu.zoo import register_zoo, with_default_conf
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Register ``ppo_gocu``, add our default config file and thread count, and run ``rl_zoo3.train.train()``."""
+    """Register ``ppo_gocu``, add our default config file, and run ``rl_zoo3.train.train()``."""
     register_zoo()
-    sys.argv = [sys.argv[0], *with_default_threads(with_default_conf(sys.argv[1:] if argv is None else argv))]
+    sys.argv = [sys.argv[0], *with_default_conf(sys.argv[1:] if argv is None else argv)]
     from rl_zoo3.train import train
 
     train()

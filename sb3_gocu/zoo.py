@@ -286,21 +286,3 @@ def with_default_conf(argv: list[str]) -> list[str]:
     if conf is None:
         return list(argv)
     return [*argv, "--conf-file", str(conf)]
-
-
-#: torch threads ``sb3_gocu.train`` gives a run whose command line sets none (rl-zoo3's own default, -1, keeps
-#: torch's one thread per core)
-DEFAULT_NUM_THREADS = 1
-
-
-def with_default_threads(argv: list[str]) -> list[str]:
-    """``argv`` (without the program name) with ``--num-threads 1`` appended when it gives no ``--num-threads``.
-    PPO_GoCu's scoring process takes the caller's thread count and its updates run in a thread beside the
-    training, so torch's default of one thread per core oversubscribes the cores (measured: README, "Use"). Plain
-    PPO through this launcher gets the same setting, so the two compare alike."""
-    parser = argparse.ArgumentParser(add_help=False)
-    parser.add_argument("--num-threads", type=int, default=None)
-    known, _ = parser.parse_known_args(argv)
-    if known.num_threads is not None:
-        return list(argv)
-    return [*argv, "--num-threads", str(DEFAULT_NUM_THREADS)]

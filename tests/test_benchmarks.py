@@ -396,24 +396,6 @@ def test_embedding_phases_refit_leaves_the_model_as_it_was(ep, two_runs):
     assert r["refits"][0]["step"] != r["phi"]["step"]
 
 
-def test_split_updates_benchmark_finds_the_same_weights():
-    """benchmarks/split_updates.py, tiny: both fits and a short DoorKey-5x5 run give the same weights with and
-    without split_updates, and the run with it posted halves to the waiting thread."""
-    bench = load_script("split_updates", "benchmarks/split_updates.py")
-    threads = th.get_num_threads()
-    try:
-        out = bench.main(["--repeats", "1", "--pairs", "512", "--images", "256", "--vae-epochs", "1",
-                          "--learn-steps", "2048", "--env", "GoCu/DoorKey-5x5-v0"])
-    finally:
-        th.set_num_threads(threads)
-    assert [r["fit"] for r in out["fits"]] == ["predictor", "vae"]
-    assert all(r["same_weights"] and r["whole_s"] > 0 and r["split_s"] > 0 for r in out["fits"])
-    off, on = out["learn"]
-    assert (off["split_updates"], on["split_updates"]) == (False, True)
-    assert off["weights"] == on["weights"]
-    assert off["halves_posted"] == 0 and on["halves_posted"] > 0  # the pretraining's fit was helped
-
-
 def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_time_options(tmp_path):
     """benchmarks/throughput.py, tiny (DoorKey-5x5, 4,096 steps, tiny curiosity): a second arm with the defaults
     trains the same weights (whatever the timing of the scoring process and the update thread), an arm that changes

@@ -9,7 +9,7 @@ import pytest
 import torch as th
 from torch import nn
 
-from sb3_gocu.curiosity.module import torch_threads
+from sb3_gocu.curiosity.training import torch_threads
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE, mastery_loss, vae_loss
 from sb3_gocu.curiosity.parallel import SplitConv2d, SplitConvTranspose2d, SplitLinear, SplitWork, splitting
 
@@ -222,3 +222,48 @@ def test_split_convolutions_match_the_plain_layer(make, batch) -> None:
     for help in (False, True):
         split = _in_thread(run, SplitWork(), help=help)
         assert all(th.equal(a, b) for a, b in zip(plain, split)), help
+
+
+def test_the_modules_updates_split_their_products_and_train_the_same_networks(monkeypatch) -> None:
+    """With one torch thread, a module's VAE and predictor fits post halves of their products that the thread waiting
+    for them computes, and train the same networks to the bit as the same fits with every product whole."""
+    import contextlib
+
+    import numpy as np
+    from gymnasium import spaces
+
+    from sb3_gocu import GoalCuriosityModule
+    from sb3_gocu.curiosity.training import Trainer
+
+    th.set_num_threads(1)
+    space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
+    settings = dict(n_goals=4, goal_buffer_size=32, predictor_hidden=(64, 64), predictor_pairs=512, predictor_train_freq=256,
+                    vae_epochs=2, vae_patience=0, memory_size=256, pretrain_steps=64)
+    frames = np.random.default_rng(0).integers(0, 4, (200, 2, 16, 16, 3), dtype=np.uint8) * 60
+
+    def trained(split: bool) -> tuple[GoalCuriosityModule, int]:
+        helped = [0]
+        run2 = SplitWork.run2
+
+        def counting(self, first, second):
+            helped[0] += bool(self.helpers)
+            return run2(self, first, second)
+
+        with monkeypatch.context() as m:
+            m.setattr(SplitWork, "run2", counting)
+            if not split:
+                m.setattr(Trainer, "_splitting", lambda self: contextlib.nullcontext())
+            module = GoalCuriosityModule(space, seed=0, **settings)
+            module.recording = True
+            for t, f in enumerate(frames):
+                module.step(f, np.array([t % 9 == 8, t % 13 == 12]))
+            module.add_finished_episode_goals()
+            module.train_vae()
+            module.train_predictor()
+        return module, helped[0]
+
+    (a, helped_a), (b, helped_b) = trained(True), trained(False)
+    assert helped_a > 0 and helped_b == 0
+    for net in ("vae", "predictor"):
+        sa, sb = getattr(a, net).state_dict(), getattr(b, net).state_dict()
+        assert all(th.equal(sa[k], sb[k]) for k in sa), net

@@ -31,7 +31,6 @@ from sb3_gocu.zoo import (
     register_zoo,
     sample_ppo_gocu_params,
     with_default_conf,
-    with_default_threads,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -105,18 +104,6 @@ def test_default_conf_file():
     for flag in ("--conf-file", "-conf"):
         argv = ["--algo", "ppo_gocu", "--env", DOORKEY, flag, "x.yml"]
         assert with_default_conf(argv) == argv
-
-
-def test_default_thread_count(tmp_path):
-    """sb3_gocu.train gives a run one torch thread unless its command line sets --num-threads (either form)."""
-    argv = ["--algo", "ppo_gocu", "--env", DOORKEY]
-    assert with_default_threads(argv) == [*argv, "--num-threads", "1"]
-    for given in (["--num-threads", "4"], ["--num-threads=4"], ["--num-threads", "-1"]):
-        assert with_default_threads([*argv, *given]) == [*argv, *given]
-    # the zoo's train sets it (it says so at --verbose 2), where its own default (-1) would leave torch's
-    out = run("sb3_gocu.train", "--algo", "ppo", "--env", DOORKEY, "-n", "128", "-f", "logs", "--verbose", "2",
-              "--eval-freq", "-1", "--hyperparams", "n_envs:2", "n_steps:64", "batch_size:64", cwd=tmp_path)
-    assert "Setting torch.num_threads to 1" in out
 
 
 def test_config_files_hold_the_paper_values():

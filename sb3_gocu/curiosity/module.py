@@ -12,7 +12,9 @@ The reward of a state s in an episode with goals g_1..g_K (eq 13, 14)::
     r_gc = (alpha - h(m_1, ..., m_K)) / delta   h = max (paper) or mean
     r    = r_gc / std(intrinsic returns)
 
-No Stable-Baselines3 import.
+Beside the caller run at most a scoring process (:mod:`~sb3_gocu.curiosity.process`, a CPU module's) and one update
+thread, from :meth:`~GoalCuriosityModule.maybe_train` to :meth:`~GoalCuriosityModule.finish_updates`; its fits touch
+only the networks they train and their optimisers, and scoring uses frozen copies. No Stable-Baselines3 import.
 """
 
 from __future__ import annotations
@@ -43,10 +45,10 @@ from sb3_gocu.curiosity.training import (
     FitThread, PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update,
 )
 
-#: keywords of earlier versions, retired because they did not pay (docs/results.md says what each gave)
+#: keywords of earlier versions: experiments removed, or speed-ups now fixed (docs/results.md, "What was retired")
 RETIRED = ("train_in_background", "predictor_lead", "update_threads", "vae_shards", "refit_predictor_after_vae", "train_dtype",
-           "record_start_states", "split_updates", "queue_during_update", "overlap_ppo_update", "scoring_dtype", "vae_holdout",
-           "episode_memory", "vae_pretrain_patience")
+           "record_start_states", "split_updates", "queue_during_update", "overlap_ppo_update", "scoring_process", "scoring_dtype",
+           "vae_holdout", "episode_memory", "vae_pretrain_patience")
 
 
 class GoalCuriosityModule:
@@ -63,7 +65,7 @@ class GoalCuriosityModule:
     def __init__(self, observation_space: spaces.Space, device: th.device | str = "cpu", seed: int | None = None, **settings: Any) -> None:
         retired = sorted(set(settings) & set(RETIRED))
         if retired:
-            raise TypeError(f"GoalCuriosityModule: {retired} retired (they did not pay; docs/results.md says what each gave)")
+            raise TypeError(f"GoalCuriosityModule: {retired} retired: removed or fixed behaviour (docs/results.md, 'What was retired, and why')")
         unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(CuriosityConfig)})
         if unknown:
             raise TypeError(f"GoalCuriosityModule got unknown settings {unknown}; the settings are those of CuriosityConfig")
@@ -131,9 +133,7 @@ class GoalCuriosityModule:
             raise AttributeError(f"{name} is a setting, fixed at construction: build a new GoalCuriosityModule(..., {name}=...)")
         super().__setattr__(name, value)
 
-    @property
-    def n_envs(self) -> int:
-        return self.episodes.n_envs
+    n_envs = property(lambda self: self.episodes.n_envs, doc="Envs the module keeps an episode for.")
 
     @property
     def encoder(self) -> th.nn.Module:
@@ -432,9 +432,8 @@ class GoalCuriosityModule:
 
         :return: statistics of the updates taken into use since the last call, and ``goals_added``
         """
-        out = self.finish_updates()
-        out.update(self._unreported)
-        self._unreported = {}
+        self.finish_updates()
+        out, self._unreported = self._unreported, {}
         out["goals_added"] = float(self.add_finished_episode_goals())
         cfg = self.config
         # predictor first: a VAE update makes the stored embeddings (the predictor's pairs) stale

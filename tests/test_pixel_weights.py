@@ -9,7 +9,7 @@ from gymnasium import spaces
 from torch.nn import functional as F
 
 from sb3_gocu import GoalCuriosityModule
-from sb3_gocu.curiosity.networks import ConvVAE, MlpVAE, PixelWeights, sharded_vae_gradients, vae_loss
+from sb3_gocu.curiosity.networks import ConvVAE, MlpVAE, PixelWeights, vae_loss
 
 from conftest import SMALL_CURIOSITY, ChainEnv
 
@@ -65,24 +65,6 @@ def test_weighted_reconstruction_term_by_hand():
     assert unweighted[1].item() == pytest.approx(bce.sum((1, 2, 3)).mean().item(), rel=1e-5)
     assert recon.item() != pytest.approx(unweighted[1].item(), rel=1e-3), "the weights change the term"
     assert kl.item() == pytest.approx(unweighted[2].item(), rel=1e-6), "the KL term is not weighted"
-
-
-def test_sharded_gradients_with_pixel_weights_are_the_whole_minibatchs():
-    th.manual_seed(0)
-    vae = ConvVAE((3, 8, 8), embed_dim=16, latent_dim=3).train()
-    x = (th.rand(5, 3, 8, 8, generator=th.Generator().manual_seed(3)) > 0.8).float()
-    w = th.tensor([1.0, 2.0, 0.5, 1.0, 3.0])
-    pw = PixelWeights.fit([(x, w)], 1.0)
-    loss_whole, _, _ = vae_loss(vae, x, 0.7, w, generator=th.Generator().manual_seed(11), pixel_weights=pw)
-    grads_whole = th.autograd.grad(loss_whole, list(vae.parameters()))
-    loss_parts, grads_parts = sharded_vae_gradients(
-        vae, x, 0.7, w, th.Generator().manual_seed(11), 2, lambda parts: [p() for p in parts], pw
-    )
-    assert th.allclose(loss_parts, loss_whole.detach(), rtol=1e-6, atol=0)
-    unweighted, _ = sharded_vae_gradients(vae, x, 0.7, w, th.Generator().manual_seed(11), 2, lambda parts: [p() for p in parts])
-    assert not th.allclose(unweighted, loss_parts, rtol=1e-3), "the parts use the weights"
-    for a, b in zip(grads_parts, grads_whole):
-        assert th.allclose(a, b, rtol=1e-4, atol=1e-6)
 
 
 def test_bad_pixel_weights_are_refused():

@@ -236,22 +236,16 @@ def vae_loss(
     beta: float = 1.0,
     weights: th.Tensor | None = None,
     generator: th.Generator | None = None,
-    noise: th.Tensor | None = None,
-    batch_size: int | None = None,
     pixel_weights: PixelWeights | None = None,
 ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
     """Negative of eq 8, averaged over the batch: reconstruction + beta * KL(q(z|x) || N(0, I)).
 
     :param weights: optional per-sample weights (the multiplicity of a de-duplicated observation)
     :param generator: source of the reparameterisation noise
-    :param noise: the reparameterisation noise itself (instead of drawing it)
-    :param batch_size: ``x`` is a part of a batch of this size: the terms are summed over ``x`` and divided by
-        it, so the parts' losses add up to the batch's (None: the mean over ``x``)
     :param pixel_weights: weights of the pixels in the reconstruction term (images only; None: all 1, the paper)
     :return: total loss, reconstruction term, KL term
     """
-    out, mu, logvar = vae(x, generator, noise)
-    out, mu, logvar = out.float(), mu.float(), logvar.float()  # the loss in float32 also under autocast
+    out, mu, logvar = vae(x, generator)
     if pixel_weights is None:
         recon = vae.reconstruction_loss(out, x)
     elif isinstance(vae, ConvVAE):
@@ -261,63 +255,8 @@ def vae_loss(
     kl = -0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(1)
     if weights is not None:
         recon, kl = recon * weights, kl * weights
-    if batch_size is None:
-        recon, kl = recon.mean(), kl.mean()
-    else:
-        recon, kl = recon.sum() / batch_size, kl.sum() / batch_size
+    recon, kl = recon.mean(), kl.mean()
     return recon + beta * kl, recon, kl
-
-
-def sharded_vae_gradients(
-    vae: ConvVAE | MlpVAE,
-    x: th.Tensor,
-    beta: float,
-    weights: th.Tensor,
-    generator: th.Generator | None,
-    shards: int,
-    run_all: Callable[[list[Callable[[], tuple[th.Tensor, tuple[th.Tensor | None, ...]]]]], list],
-    pixel_weights: PixelWeights | None = None,
-) -> tuple[th.Tensor, list[th.Tensor]]:
-    """The loss of :func:`vae_loss` on a minibatch and its gradient, computed as ``shards`` independent parts.
-
-    The minibatch is cut into ``shards`` consecutive parts (sizes differing by at most 1); each part's share of
-    the loss and its gradient are computed on their own, and the parts' losses and gradients are then added in
-    the parts' order. ``run_all`` runs the parts (callables) and returns their results in order: one after the
-    other or in parallel threads, the values are the same, provided it runs every part with the same torch
-    thread count (the module runs each with 1). The noise is drawn for the whole minibatch first, from
-    ``generator``, exactly as :func:`vae_loss` draws it, so only the summation order differs from it.
-
-    :param pixel_weights: as in :func:`vae_loss`
-    :return: the loss (detached) and one gradient per parameter of ``vae`` (in ``vae.parameters()`` order;
-        zeros for a parameter the loss does not reach)
-    """
-    if not 1 <= shards:
-        raise ValueError(f"shards must be >= 1, got {shards}")
-    params = list(vae.parameters())
-    n = len(x)
-    noise = None
-    if vae.training:
-        latent_dim = vae.mu.out_features
-        noise = th.randn((n, latent_dim), generator=generator, dtype=vae.mu.weight.dtype, device=x.device)
-
-    def part(rows: slice) -> tuple[th.Tensor, tuple[th.Tensor | None, ...]]:
-        loss, _, _ = vae_loss(vae, x[rows], beta, weights[rows], noise=None if noise is None else noise[rows], batch_size=n,
-                              pixel_weights=pixel_weights)
-        return loss.detach(), th.autograd.grad(loss, params, allow_unused=True)
-
-    bounds = [len(b) for b in th.tensor_split(th.arange(n), shards)]
-    slices, start = [], 0
-    for size in bounds:
-        if size:
-            slices.append(slice(start, start + size))
-        start += size
-    results = run_all([lambda rows=rows: part(rows) for rows in slices])
-    loss = results[0][0]
-    grads = [th.zeros_like(p) if g is None else g for p, g in zip(params, results[0][1])]
-    for part_loss, part_grads in results[1:]:
-        loss = loss + part_loss
-        grads = [a if b is None else a + b for a, b in zip(grads, part_grads)]
-    return loss, grads
 
 
 class MasteryPredictor(nn.Module):

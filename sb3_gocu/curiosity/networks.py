@@ -13,7 +13,6 @@ import torch as th
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_gocu.curiosity.parallel import SplitConv2d, SplitConvTranspose2d, SplitLinear
 
 
 def _noise(like: th.Tensor, generator: th.Generator | None, noise: th.Tensor | None = None) -> th.Tensor:
@@ -43,28 +42,28 @@ class ConvVAE(nn.Module):
         c, h, w = input_shape
         self.input_shape = (c, h, w)
         self.conv = nn.Sequential(
-            SplitConv2d(c, 32, 3, stride=2, padding=1),
+            nn.Conv2d(c, 32, 3, stride=2, padding=1),
             nn.ReLU(),
-            SplitConv2d(32, 32, 3, stride=1, padding=1),
+            nn.Conv2d(32, 32, 3, stride=1, padding=1),
             nn.ReLU(),
-            SplitConv2d(32, 32, 3, stride=1, padding=1),
+            nn.Conv2d(32, 32, 3, stride=1, padding=1),
             nn.ReLU(),
         )
         self.feature_hw = ((h + 1) // 2, (w + 1) // 2)
         n_flat = 32 * self.feature_hw[0] * self.feature_hw[1]
-        self.fc = SplitLinear(n_flat, embed_dim)
+        self.fc = nn.Linear(n_flat, embed_dim)
         self.mu = nn.Linear(embed_dim, latent_dim)
         self.logvar = nn.Linear(embed_dim, latent_dim)
         self.decoder_fc = nn.Sequential(
-            SplitLinear(latent_dim, embed_dim), nn.ReLU(), SplitLinear(embed_dim, n_flat), nn.ReLU()
+            nn.Linear(latent_dim, embed_dim), nn.ReLU(), nn.Linear(embed_dim, n_flat), nn.ReLU()
         )
         self.deconv = nn.Sequential(
             # a stride-1 transposed convolution is a convolution: nn.Conv2d is the faster kernel on a CPU
-            SplitConv2d(32, 32, 3, stride=1, padding=1),
+            nn.Conv2d(32, 32, 3, stride=1, padding=1),
             nn.ReLU(),
-            SplitConv2d(32, 32, 3, stride=1, padding=1),
+            nn.Conv2d(32, 32, 3, stride=1, padding=1),
             nn.ReLU(),
-            SplitConvTranspose2d(32, c, 4, stride=2, padding=1),
+            nn.ConvTranspose2d(32, c, 4, stride=2, padding=1),
         )
 
     def embed(self, x: th.Tensor) -> th.Tensor:
@@ -110,11 +109,11 @@ class MlpVAE(nn.Module):
         super().__init__()
         (d,) = input_shape
         self.input_shape = (d,)
-        self.encoder = nn.Sequential(SplitLinear(d, 256), nn.ReLU(), SplitLinear(256, embed_dim), nn.ReLU())
+        self.encoder = nn.Sequential(nn.Linear(d, 256), nn.ReLU(), nn.Linear(256, embed_dim), nn.ReLU())
         self.mu = nn.Linear(embed_dim, latent_dim)
         self.logvar = nn.Linear(embed_dim, latent_dim)
         self.decoder = nn.Sequential(
-            SplitLinear(latent_dim, embed_dim), nn.ReLU(), SplitLinear(embed_dim, 256), nn.ReLU(), SplitLinear(256, d)
+            nn.Linear(latent_dim, embed_dim), nn.ReLU(), nn.Linear(embed_dim, 256), nn.ReLU(), nn.Linear(256, d)
         )
 
     def embed(self, x: th.Tensor) -> th.Tensor:
@@ -277,7 +276,7 @@ class MasteryPredictor(nn.Module):
         layers: list[nn.Module] = []
         n_in = 2 * embed_dim
         for n_out in hidden_sizes:
-            layers += [SplitLinear(n_in, n_out), nn.BatchNorm1d(n_out), nn.ReLU()]
+            layers += [nn.Linear(n_in, n_out), nn.BatchNorm1d(n_out), nn.ReLU()]
             n_in = n_out
         self.hidden = nn.Sequential(*layers)
         self.out = nn.Linear(n_in, 2)

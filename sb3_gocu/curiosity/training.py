@@ -23,7 +23,6 @@ import torch as th
 from sb3_gocu.curiosity.config import VAE_HOLDOUT, CuriosityConfig
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE, PixelWeights, mastery_loss, vae_loss
 from sb3_gocu.curiosity.observations import ObservationAdapter
-from sb3_gocu.curiosity.parallel import SplitWork, splitting
 from sb3_gocu.curiosity.reward import complexity_score, mastered_probability
 from sb3_gocu.curiosity.stores import distinct_rows
 
@@ -203,16 +202,9 @@ class Trainer:
     def __init__(self, vae: ConvVAE | MlpVAE, predictor: MasteryPredictor, config: CuriosityConfig, adapter: ObservationAdapter,
                  device: th.device, generator: th.Generator) -> None:
         self.vae, self.predictor, self.config, self.adapter, self.device, self.generator = vae, predictor, config, adapter, device, generator
-        #: where a fit with one torch thread posts the second halves of its large products, for the thread waiting for
-        #: it (:meth:`FitThread.take`) to compute: the same values to the bit (``sb3_gocu.curiosity.parallel``)
-        self.split = SplitWork()
         # foreach: Adam's multi-tensor step, the same values as its per-parameter loop (tested) in fewer calls
         self.vae_optimizer = th.optim.Adam(vae.parameters(), lr=config.vae_lr, foreach=True)
         self.predictor_optimizer = th.optim.Adam(predictor.parameters(), lr=config.predictor_lr, foreach=True)
-
-    def _splitting(self) -> contextlib.AbstractContextManager:
-        """Split the fit's large products in halves if it runs with one torch thread (call it with the fit's count)."""
-        return splitting(self.split if th.get_num_threads() == 1 else None)
 
     # ------------------------------------------------------------------ VAE
     def vae_job(self, observations: np.ndarray, rng: np.random.Generator, pixel_weighting: float, epochs: int | None = None,
@@ -266,7 +258,7 @@ class Trainer:
         :param on_epoch: called with the epoch number after each epoch (the VAE in train mode), for probes
         """
         cfg = self.config
-        with torch_threads(job.threads), self._splitting():
+        with torch_threads(job.threads):
             t0 = time.perf_counter()
             saved = snapshot(self.vae, self.vae_optimizer)
             early = job.val_data is not None and job.val_weights is not None and job.patience > 0
@@ -336,7 +328,7 @@ class Trainer:
         :param on_epoch: called with the epoch number after each epoch (the predictor in train mode), for probes
         """
         cfg = self.config
-        with torch_threads(job.threads), self._splitting():
+        with torch_threads(job.threads):
             t0 = time.perf_counter()
             p_skill = self.label_pairs(job.phi_s, job.phi_g, job.dist)
             # labels drawn on the generator's device (the CPU), then moved to the predictor's
@@ -373,8 +365,7 @@ def mean_or_nan(values: Sequence[float]) -> float:
 
 class FitThread:
     """Fits jobs one after the other in a thread of their own, beside whatever the caller does meanwhile (PPO's
-    update); :meth:`take` waits for them, computing halves of their products meanwhile, and returns the fits, or
-    raises what they raised.
+    update); :meth:`take` waits for them and returns the fits, or raises what they raised.
 
     :param trainer: fits the jobs
     :param jobs: :class:`VaeJob` s and :class:`PredictorJob` s, in order
@@ -384,7 +375,6 @@ class FitThread:
         self._trainer, self._jobs = trainer, jobs
         self._fits: list[VaeFit | PredictorFit] = []
         self._error: BaseException | None = None
-        self._finished = threading.Event()
         self._thread = threading.Thread(target=self._run, name="gocu-update", daemon=True)
         self._thread.start()
 
@@ -395,14 +385,9 @@ class FitThread:
                 self._fits.append(fit)
         except BaseException as error:  # raised again in the thread that takes the fits
             self._error = error
-        finally:
-            self._finished.set()
-            self._trainer.split.wake()
 
     def take(self) -> list[VaeFit | PredictorFit]:
-        """Wait for the fits, computing halves of their products meanwhile; a ``RuntimeError`` from the error they
-        raised, if any."""
-        self._trainer.split.help(self._finished)
+        """Wait for the fits; a ``RuntimeError`` from the error they raised, if any."""
         self._thread.join()
         if self._error is not None:
             raise RuntimeError("a background curiosity update failed") from self._error

@@ -60,7 +60,6 @@ class Timer:
 #: the random-policy pretraining phase (env steps, VAE pretraining, first goals), over all runs
 pretrain_timer = Timer()
 pretrain_timer.wrap(GoCuCallback, "_pretrain", "pretrain")
-pretrain_timer.wrap(GoCuCallback, "_on_training_end", "end_of_learn")  # waits for an update still running
 
 
 def innermost(venv: Any) -> Any:
@@ -104,23 +103,10 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         setattr(model, name, value)
     timer.wrap(model, "train", "ppo_update")
     if algo == "ppo_gocu":
-        # wall time the rollouts wait for curiosity training (all of it when synchronous, only the joins when
-        # the updates run in the background)
+        # wall time of the curiosity updates, run at each rollout's end
         timer.wrap(model.curiosity, "maybe_train", "curiosity_updates")
     timer.wrap(model, "collect_rollouts", "rollout")
-    waits_in_rollouts = [0.0]  # the module's update waits as of the last rollout's end (the rest: learn's end)
-    if algo == "ppo_gocu":
-        collect = model.collect_rollouts
-
-        def collect_and_note(*args: Any, **kwargs: Any) -> Any:
-            try:
-                return collect(*args, **kwargs)
-            finally:
-                waits_in_rollouts[0] = model.curiosity.time_update_wait
-
-        model.collect_rollouts = collect_and_note
     pretrain_before = pretrain_timer.totals.get("pretrain", 0.0)
-    end_before = pretrain_timer.totals.get("end_of_learn", 0.0)
     t0 = time.perf_counter()
     model.learn(timesteps)
     total = time.perf_counter() - t0
@@ -137,15 +123,13 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         # with overlap_ppo_update an update is waited for at the next rollout's first step (or at the end of
         # learn), not in maybe_train
         # the end of learn waits for an update still running (outside any rollout): reported on its own row
-        out["end_of_learn_wait_s"] = pretrain_timer.totals.get("end_of_learn", 0.0) - end_before
-        out["curiosity_updates_s"] = out.get("curiosity_updates_s", 0.0) + waits_in_rollouts[0]
         out["pretrain_s"] = pretrain_timer.totals.get("pretrain", 0.0) - pretrain_before
         out["waiting_for_worker_s"] = mod.scorer.time_waiting
         out["tickets_spilled"] = float(mod.scorer.spilled_tickets)  # spill_scoring
     out["policy_and_bookkeeping_s"] = (
         out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0) - out.get("curiosity_updates_s", 0.0)
     )
-    out["other_s"] = total - out["rollout_s"] - out["ppo_update_s"] - out.get("pretrain_s", 0.0) - out.get("end_of_learn_wait_s", 0.0)
+    out["other_s"] = total - out["rollout_s"] - out["ppo_update_s"] - out.get("pretrain_s", 0.0)
     out["weights_sha256"] = weights_hash(model)
     return out
 
@@ -242,7 +226,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print("\nwhere the time goes (s)          PPO   PPO_GoCu" + "".join(f"  {labels[k]:>20s}" for k in extras))
     for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "waiting_for_worker_s",
                 "scoring_in_worker_s", "scoring_in_worker_cpu_s", "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s",
-                "end_of_learn_wait_s", "other_s", "total_s"):
+                "other_s", "total_s"):
         extra = "".join(f"  {results[k].get(key, 0.0):20.1f}" for k in extras)
         print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}{extra}")
     print(f"  {'weights_sha256':28s} {ppo['weights_sha256']:>7s}  {gocu['weights_sha256']:>9s}" + "".join(f"  {results[k]['weights_sha256']:>20s}" for k in extras))
@@ -253,11 +237,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker process, overlapping the next")
     print("   env steps, not on the critical path unless waited for; scoring_in_worker_cpu_s: the worker's")
     print("   CPU time in it, the rest of its wall time it waited for the GIL (or a core))")
-    print("  (end_of_learn_wait_s: learn's end waiting for an update still running; other_s: the rest of learn, outside the")
-    print("   rollouts, PPO's updates, pretraining and that wait)")
-    print("  (VAE/predictor training overlaps PPO's update and the next rollout waits for the rest: only the waits are on")
-    print("   the critical path)")
-    print("  (curiosity_updates_s: time the rollouts waited for VAE/predictor updates; vae/predictor_training_s: the "
+    print("  (other_s: the rest of learn, outside the rollouts, PPO's updates and pretraining)")
+    print("  (curiosity_updates_s: the VAE/predictor updates at the rollouts' ends; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")
     print("  (tickets_spilled: steps scored in the training thread because the scoring process was behind)")
     print(f"  (pretrain_s is the whole random-policy pretraining phase (measured, not a remainder); "

@@ -83,10 +83,6 @@ class GoCuCallback(BaseCallback):
     def _on_step(self) -> bool:
         return True
 
-    def _on_rollout_start(self) -> None:
-        assert self.module is not None
-        self.module.finish_updates()  # the update started at the last rollout's end, taken into use before any step
-
     def _on_rollout_end(self) -> None:
         assert self.module is not None
         stats: dict[str, Any] = self.module.maybe_train()
@@ -109,5 +105,4 @@ class GoCuCallback(BaseCallback):
 
     def _on_training_end(self) -> None:
         assert self.module is not None
-        self.module.finish_updates()  # no update thread outlives learn()
         self.module.recording = False

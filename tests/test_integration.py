@@ -149,33 +149,25 @@ def two_modules_after_steps() -> tuple[GoalCuriosityModule, GoalCuriosityModule]
     return modules
 
 
-def test_an_update_started_at_a_rollout_end_is_the_update_run_in_place():
-    """maybe_train starts the updates due in a thread; finish_updates takes them into use (the networks and rewards
-    those of train_predictor and train_vae run in place, in that order), and their statistics come out of the next
-    maybe_train, once."""
-    in_place, overlap = two_modules_after_steps()
-    in_place.add_finished_episode_goals()
-    out_in_place = {**in_place.train_predictor(), **in_place.train_vae()}
-    old_fold = overlap.mastery(np.zeros((1, 2), np.float32), np.ones((1, 2), np.float32))
-    out_started = overlap.maybe_train()
-    assert "predictor_loss" not in out_started and overlap.update_running, "the update runs in a thread"
-    assert th.equal(old_fold, overlap.mastery(np.zeros((1, 2), np.float32), np.ones((1, 2), np.float32))), "not in use yet"
-    overlap.finish_updates()
-    assert not overlap.update_running
+def test_maybe_train_runs_the_updates_due_predictor_first():
+    """maybe_train adds the finished episodes' goals and runs the updates due, the predictor before the VAE: the same
+    networks, rewards and statistics as train_predictor then train_vae."""
+    by_hand, scheduled = two_modules_after_steps()
+    by_hand.add_finished_episode_goals()
+    expected = {**by_hand.train_predictor(), **by_hand.train_vae()}
+    out = scheduled.maybe_train()
+    assert out["goals_added"] > 0 and out["predictor_loss"] == expected["predictor_loss"] and out["vae_loss"] == expected["vae_loss"]
     obs = np.array([[0.3, 0.09], [0.6, 0.36]], dtype=np.float32)
-    assert np.array_equal(in_place.step(obs, np.zeros(2, bool))[0], overlap.step(obs, np.zeros(2, bool))[0])
+    assert np.array_equal(by_hand.step(obs, np.zeros(2, bool))[0], scheduled.step(obs, np.zeros(2, bool))[0])
     for name in ("vae", "predictor"):
-        a, b = getattr(in_place, name).state_dict(), getattr(overlap, name).state_dict()
+        a, b = getattr(by_hand, name).state_dict(), getattr(scheduled, name).state_dict()
         assert all(th.equal(a[k], b[k]) for k in a), name
-    out_next = overlap.maybe_train()
-    assert out_next["predictor_loss"] == out_in_place["predictor_loss"] and out_next["vae_loss"] == out_in_place["vae_loss"]
-    assert "predictor_loss" not in overlap.maybe_train(), "reported once"
+    assert "predictor_loss" not in scheduled.maybe_train(), "nothing due right after"
 
 
 @pytest.mark.parametrize("caller", [1, 2])
-def test_updates_run_with_the_callers_thread_count_and_leave_it_alone(caller, monkeypatch):
-    """Every minibatch of both fits runs in the update's thread with the thread count of the caller of maybe_train,
-    and the caller's count is the same after the update as before."""
+def test_updates_run_in_the_caller_with_its_thread_count(caller, monkeypatch):
+    """Every epoch of both fits runs in the calling thread with its thread count, which is the same afterwards."""
     th.set_num_threads(caller)
     _, module = two_modules_after_steps()
     seen: list[tuple[str, int, int]] = []
@@ -185,11 +177,9 @@ def test_updates_run_with_the_callers_thread_count_and_leave_it_alone(caller, mo
             return fit(job, on_epoch=lambda epoch: seen.append((name, th.get_num_threads(), threading.get_ident())))
         monkeypatch.setattr(trainer, f"fit_{name}", spy)
     module.maybe_train()
-    module.finish_updates()
-    assert th.get_num_threads() == caller, "the caller's count is left alone"
+    assert th.get_num_threads() == caller
     assert {name for name, _, _ in seen} == {"vae", "predictor"}
-    assert {n for _, n, _ in seen} == {caller}
-    assert threading.get_ident() not in {ident for _, _, ident in seen}
+    assert {(n, ident) for _, n, ident in seen} == {(caller, threading.get_ident())}
 
 
 @pytest.mark.parametrize("name", ["train_in_background", "vae_shards", "scoring_dtype", "overlap_ppo_update"])

@@ -606,32 +606,6 @@ def test_two_runs_with_one_seed_give_identical_updates_and_rewards():
     assert differences(parameters(a), parameters(c)), "another seed gives another run"
 
 
-def test_updates_overlapping_ppos_update_match_the_in_place_run_bit_for_bit():
-    """The curiosity updates due at a rollout's end run in a thread while PPO updates the policy, and are taken into
-    use at the next rollout's start: the same policy, module and rewards as taking them into use at once, bit for bit."""
-    runs, overlapped = [], []
-    for in_place in (False, True):
-        model = small_model(curiosity=dict(predictor_train_freq=128, vae_train_freq=256))
-        module, train = model.curiosity, model.train
-        if in_place:
-            maybe_train = module.maybe_train
-            module.maybe_train = lambda maybe_train=maybe_train, module=module: {**maybe_train(), **module.finish_updates()}
-
-        def spy(train=train, module=module):
-            overlapped.append(module.update_running)
-            train()
-
-        model.train = spy
-        model.learn(512)  # 8 rollouts: 4 predictor updates, 2 VAE updates
-        runs.append(model)
-    a, b = runs
-    assert overlapped[:8].count(True) == 4 and not any(overlapped[8:]), "updates ran beside PPO's, unless taken at once"
-    assert a.curiosity.stats["predictor_pairs"] > 0 and a.curiosity.time_vae > 0
-    assert not differences(parameters(a), parameters(b))
-    assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())
-    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
-
-
 def test_module_initial_weights_depend_on_its_seed_alone():
     th.manual_seed(1)
     a = GoalCuriosityModule(BOX, **SMALL_CURIOSITY, seed=7)
@@ -657,7 +631,6 @@ def test_stores_stay_at_their_capacities(monkeypatch):
         if t == 0:
             first = sizes()
         if t % 64 == 63:
-            module.finish_updates()
             module.maybe_train()
         assert module.goal_buffer.size <= 6 and module.memory.size <= 20
         assert len(module.trajectories) <= module.trajectories.capacity * n_envs <= max(40, 2 * 3 * n_envs)

@@ -12,9 +12,8 @@ The reward of a state s in an episode with goals g_1..g_K (eq 13, 14)::
     r_gc = (alpha - h(m_1, ..., m_K)) / delta   h = max (paper) or mean
     r    = r_gc / std(intrinsic returns)
 
-Beside the caller run at most a scoring process (:mod:`~sb3_gocu.curiosity.process`, a CPU module's) and one update
-thread, from :meth:`~GoalCuriosityModule.maybe_train` to :meth:`~GoalCuriosityModule.finish_updates`; its fits touch
-only the networks they train and their optimisers, and scoring uses frozen copies. No Stable-Baselines3 import.
+Beside the caller runs at most one worker that scores the states submitted for background scoring; it reads only what
+each submission copied (frozen copies of the networks among them). No Stable-Baselines3 import.
 """
 
 from __future__ import annotations
@@ -42,7 +41,7 @@ from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, revisit_factor
 from sb3_gocu.curiosity.scoring import Scorer, ScoringTicket, eq13_rows
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, observation_key
 from sb3_gocu.curiosity.training import (
-    FitThread, PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update,
+    PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update,
 )
 
 #: keywords of earlier versions: experiments removed, or speed-ups now fixed (docs/results.md, "What was retired")
@@ -101,8 +100,6 @@ class GoalCuriosityModule:
         use_process = self.device.type == "cpu" and os.name == "posix"
         to_tensor = functools.partial(self.adapter.to_tensor, device=self.device)  # picklable, for the scoring process
         self.scorer = Scorer(self.episodes, cfg.embed_dim, to_tensor, (cfg.alpha, cfg.aggregation, cfg.reward_scale), use_process)
-        self._update: FitThread | None = None  # an update started by maybe_train, not yet taken into use
-        self._unreported: dict[str, float] = {}  # statistics of updates taken into use outside maybe_train
 
         #: when True, :meth:`step` records observations (memory bank, trajectory store, episodes) and updates the
         #: normaliser; a training callback switches it on
@@ -117,7 +114,6 @@ class GoalCuriosityModule:
         self.time_inference = 0.0  # cumulative seconds in the module's scoring calls
         self.time_vae = 0.0
         self.time_predictor = 0.0
-        self.time_update_wait = 0.0  # waiting for an update that overlapped PPO's
         self._folded = self.predictor.fold()
         self._encoder = self._frozen_encoder()
 
@@ -389,7 +385,7 @@ class GoalCuriosityModule:
         return out
 
     def use_fits(self, fits: list[VaeFit | PredictorFit]) -> dict[str, float]:
-        """Take fits of :attr:`trainer` into use, in order; their statistics."""
+        """Take fits of :attr:`trainer` into use, in order (for fits made outside :meth:`maybe_train`); their statistics."""
         out: dict[str, float] = {}
         for fit in fits:
             out.update(self._take_vae(fit) if isinstance(fit, VaeFit) else self._take_predictor(fit))
@@ -402,18 +398,16 @@ class GoalCuriosityModule:
         :param patience: early stopping's patience (default ``vae_patience``; 0: all ``epochs``)
         :return: statistics of the update
         """
-        self.finish_updates()
         job = self.vae_job(epochs, patience)
-        return {} if job is None else self.use_fits(FitThread(self.trainer, [job]).take())
+        return {} if job is None else self._take_vae(self.trainer.fit_vae(job))
 
     def train_predictor(self) -> dict[str, float]:
         """Draw pairs (s_t, s_{t+y}), label them with eq 15-16 and train the predictor now.
 
         :return: statistics of the update (loss, accuracy against the labels, fraction labelled mastered)
         """
-        self.finish_updates()
         job = self.predictor_job()
-        return {} if job is None else self.use_fits(FitThread(self.trainer, [job]).take())
+        return {} if job is None else self._take_predictor(self.trainer.fit_predictor(job))
 
     def pretrain(self) -> dict[str, float]:
         """Train the VAE on what the memory bank holds (the random-policy observations) for all ``vae_epochs``
@@ -424,50 +418,17 @@ class GoalCuriosityModule:
         return out
 
     def maybe_train(self) -> dict[str, float]:
-        """Add goals from finished episodes, and start the updates due: the predictor every ``predictor_train_freq``
-        and the VAE every ``vae_train_freq`` recorded steps. Call it at a rollout's end: the updates run in a thread
-        beside what the caller does next (PPO's update) and are taken into use by :meth:`finish_updates` (the
-        training callback calls it at the next rollout's start), as if run in place; their statistics come out of
-        the next call.
+        """Add goals from finished episodes, and run the updates due: the predictor every ``predictor_train_freq`` and
+        the VAE every ``vae_train_freq`` recorded steps. Call it at a rollout's end.
 
-        :return: statistics of the updates taken into use since the last call, and ``goals_added``
+        :return: statistics of the updates run, and ``goals_added``
         """
-        self.finish_updates()
-        out, self._unreported = self._unreported, {}
-        out["goals_added"] = float(self.add_finished_episode_goals())
-        cfg = self.config
+        out = {"goals_added": float(self.add_finished_episode_goals())}
         # predictor first: a VAE update makes the stored embeddings (the predictor's pairs) stale
-        jobs: list[Any] = []
-        if self.n_recorded_steps - self.last_predictor_update >= cfg.predictor_train_freq:
-            job = self.predictor_job()
-            if job is not None:
-                jobs.append(job)
-        if self.n_recorded_steps - self.last_vae_update >= cfg.vae_train_freq:
-            job = self.vae_job()
-            if job is not None:
-                jobs.append(job)
-        if jobs:
-            self._update = FitThread(self.trainer, jobs)
-        return out
-
-    @property
-    def update_running(self) -> bool:
-        """Whether an update started by :meth:`maybe_train` has not been taken into use yet."""
-        return self._update is not None
-
-    def finish_updates(self) -> dict[str, float]:
-        """Wait for the update started by :meth:`maybe_train`, if any, and take it into use.
-
-        :return: statistics of that update (empty if none ran)
-        """
-        if self._update is None:
-            return {}
-        t0 = time.perf_counter()
-        update, self._update = self._update, None
-        fits = update.take()
-        self.time_update_wait += time.perf_counter() - t0
-        out = self.use_fits(fits)
-        self._unreported.update(out)
+        if self.n_recorded_steps - self.last_predictor_update >= self.config.predictor_train_freq:
+            out.update(self.train_predictor())
+        if self.n_recorded_steps - self.last_vae_update >= self.config.vae_train_freq:
+            out.update(self.train_vae())
         return out
 
     def pop_reward_stats(self) -> dict[str, float]:
@@ -487,7 +448,7 @@ class GoalCuriosityModule:
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict[str, Any]:
         """Everything the module learned and remembers, as tensors and plain Python values (loadable with
-        ``torch.load(..., weights_only=True)``). Scores in flight and an update still running are taken first."""
+        ``torch.load(..., weights_only=True)``). Scores in flight are taken first."""
         return persistence.module_state(self)
 
     def load_state_dict(self, state: dict[str, Any], strict: bool = True) -> None:

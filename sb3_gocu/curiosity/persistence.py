@@ -15,9 +15,8 @@ if TYPE_CHECKING:
 
 
 def module_state(module: GoalCuriosityModule) -> dict[str, Any]:
-    """The module's state dict (scores in flight and a running update taken first)."""
+    """The module's state dict (scores in flight taken first)."""
     module.collect_all()
-    module.finish_updates()
     return {
         "vae": module.vae.state_dict(),
         "vae_optimizer": module.trainer.vae_optimizer.state_dict(),
@@ -49,7 +48,6 @@ def load_module_state(module: GoalCuriosityModule, state: dict[str, Any], strict
         if bad:
             raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
     module.collect_all()
-    module.finish_updates()
     module.vae.load_state_dict(state["vae"], strict=strict)
     module.scorer.phi_memo.clear()
     module.predictor.load_state_dict(state["predictor"], strict=strict)

@@ -1,9 +1,8 @@
 """Training the VAE (eq 8) and the mastery predictor (eq 15-16): jobs in, typed fits out.
 
-An update has three steps. Its *job* is prepared in the caller's thread from the module's stores (a copy of
-what it trains on, drawn with the module's generator); :class:`Trainer` *fits* the network to the job (any
-thread: it touches only the network, its optimiser and the torch generator); the module then *takes the fit
-into use* (re-embeds goals, clears memos). Every step that meets a non-finite loss or gradient is skipped,
+An update has three steps. Its *job* is prepared from the module's stores (a copy of what it trains on, drawn with
+the module's generator); :class:`Trainer` *fits* the network to the job (it touches only the network, its optimiser
+and the torch generator); the module then *takes the fit into use* (re-embeds goals, clears memos). Every step that meets a non-finite loss or gradient is skipped,
 and an update that leaves the weights non-finite is rolled back (:func:`guard_update`). No SB3 import.
 """
 
@@ -12,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
-import threading
 import time
 import warnings
 from typing import Any, Callable, Iterator, Sequence
@@ -362,33 +360,3 @@ def mean_or_nan(values: Sequence[float]) -> float:
     """The mean of ``values``, NaN when there are none."""
     return float(np.mean(values)) if len(values) else float("nan")
 
-
-class FitThread:
-    """Fits jobs one after the other in a thread of their own, beside whatever the caller does meanwhile (PPO's
-    update); :meth:`take` waits for them and returns the fits, or raises what they raised.
-
-    :param trainer: fits the jobs
-    :param jobs: :class:`VaeJob` s and :class:`PredictorJob` s, in order
-    """
-
-    def __init__(self, trainer: Trainer, jobs: list[VaeJob | PredictorJob]) -> None:
-        self._trainer, self._jobs = trainer, jobs
-        self._fits: list[VaeFit | PredictorFit] = []
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="gocu-update", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        try:
-            for job in self._jobs:
-                fit = self._trainer.fit_vae(job) if isinstance(job, VaeJob) else self._trainer.fit_predictor(job)
-                self._fits.append(fit)
-        except BaseException as error:  # raised again in the thread that takes the fits
-            self._error = error
-
-    def take(self) -> list[VaeFit | PredictorFit]:
-        """Wait for the fits; a ``RuntimeError`` from the error they raised, if any."""
-        self._thread.join()
-        if self._error is not None:
-            raise RuntimeError("a background curiosity update failed") from self._error
-        return self._fits

@@ -115,8 +115,7 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
     if algo == "ppo_gocu":
         mod = model.curiosity
         out["curiosity_inference_s"] = mod.time_inference
-        out["scoring_in_worker_s"] = mod.scorer.time_in_process
-        out["scoring_in_worker_cpu_s"] = mod.scorer.cpu_in_process
+        out["scoring_in_worker_s"] = mod.scorer.time_in_worker
         out["vae_training_s"] = mod.time_vae
         out["predictor_training_s"] = mod.time_predictor
         out["cache_hit_rate"] = mod.scorer.cache_hits / max(1, mod.scorer.cache_lookups)
@@ -125,7 +124,6 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         # the end of learn waits for an update still running (outside any rollout): reported on its own row
         out["pretrain_s"] = pretrain_timer.totals.get("pretrain", 0.0) - pretrain_before
         out["waiting_for_worker_s"] = mod.scorer.time_waiting
-        out["tickets_spilled"] = float(mod.scorer.spilled_tickets)  # spill_scoring
     out["policy_and_bookkeeping_s"] = (
         out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0) - out.get("curiosity_updates_s", 0.0)
     )
@@ -225,22 +223,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print(f"(PPO_GoCu continued {args.gocu_model})")
     print("\nwhere the time goes (s)          PPO   PPO_GoCu" + "".join(f"  {labels[k]:>20s}" for k in extras))
     for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "waiting_for_worker_s",
-                "scoring_in_worker_s", "scoring_in_worker_cpu_s", "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s",
+                "scoring_in_worker_s", "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s",
                 "other_s", "total_s"):
         extra = "".join(f"  {results[k].get(key, 0.0):20.1f}" for k in extras)
         print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}{extra}")
     print(f"  {'weights_sha256':28s} {ppo['weights_sha256']:>7s}  {gocu['weights_sha256']:>9s}" + "".join(f"  {results[k]['weights_sha256']:>20s}" for k in extras))
-    for key in ("tickets_spilled",):
-        extra = "".join(f"  {results[k].get(key, 0.0):20.0f}" for k in extras)
-        print(f"  {key:28s} {'':7s}  {gocu.get(key, 0.0):9.0f}{extra}")
     print("  (curiosity_inference_s: the rollout's own time in the module, waiting_for_worker_s included: the part it waited")
-    print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker process, overlapping the next")
-    print("   env steps, not on the critical path unless waited for; scoring_in_worker_cpu_s: the worker's")
-    print("   CPU time in it, the rest of its wall time it waited for the GIL (or a core))")
+    print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker thread, overlapping the next")
+    print("   env steps, not on the critical path unless waited for)")
     print("  (other_s: the rest of learn, outside the rollouts, PPO's updates and pretraining)")
     print("  (curiosity_updates_s: the VAE/predictor updates at the rollouts' ends; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")
-    print("  (tickets_spilled: steps scored in the training thread because the scoring process was behind)")
     print(f"  (pretrain_s is the whole random-policy pretraining phase (measured, not a remainder); "
           f"reward cache hit rate {gocu['cache_hit_rate']:.2f})")
     if args.json:

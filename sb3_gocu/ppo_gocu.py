@@ -57,7 +57,7 @@ PAPER_PPO_KWARGS: Mapping[str, Any] = MappingProxyType(
     dict(n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2)
 )
 PAPER_N_ENVS = 16
-#: a rollout step's curiosity is collected this many steps after it was submitted, so the worker process scores
+#: a rollout step's curiosity is collected this many steps after it was submitted, so the worker thread scores
 #: up to this many steps while the envs step on (docs/results.md, "Speed-ups, each against its absence")
 SCORING_LAG = 4
 
@@ -70,7 +70,7 @@ class PPO_GoCu(PPO):
     of :data:`PAPER_PPO_KWARGS` default to the paper's values (n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
     gamma 0.99, vf 0.5, clip 0.2) instead of SB3's, the others to SB3's. The paper runs 16 envs
     (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. During
-    a rollout, a CPU module embeds and scores each step's new states in its worker process while the envs take the
+    a rollout, the module embeds and scores each step's new states in its worker thread while the envs take the
     next steps (the same rewards, bit for bit, as scoring in the training thread); a step's ``infos["gocu_*"]``
     entries are written :data:`SCORING_LAG` steps later (the last ones at the rollout's end). Plus:
 
@@ -257,7 +257,6 @@ class PPO_GoCu(PPO):
         waiting: deque[tuple[tuple, int | None]] = deque()  # steps whose r_gc is still being scored: (deferred, buffer row)
         if gocu is not None:
             gocu.defer = True
-            gocu.module.scorer.spill = SCORING_LAG - 1  # the process that far behind: the next step is scored here
         try:
             while n_steps < n_rollout_steps:
                 if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
@@ -273,7 +272,7 @@ class PPO_GoCu(PPO):
                     else:
                         clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
 
-                # with a deferring wrapper, r_gc of this step is scored in the worker process while the envs take the
+                # with a deferring wrapper, r_gc of this step is scored in the worker thread while the envs take the
                 # next step; it is added to its buffer row then (the row holds 0 or the truncation bootstrap until then)
                 new_obs, rewards, dones, infos = env.step(clipped_actions)
                 if gocu is not None:
@@ -322,7 +321,6 @@ class PPO_GoCu(PPO):
                 while waiting:
                     self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
                 gocu.defer = False
-                gocu.module.scorer.spill = None
 
         with th.no_grad():
             values = self.policy.predict_values(obs_as_tensor(new_obs, self.device))  # type: ignore[arg-type]
@@ -355,12 +353,10 @@ class PPO_GoCu(PPO):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfPPOGoCu:
-        """SB3's ``learn``, with one torch thread on a CPU device: the scoring process and the curiosity updates run
-        beside the training thread, and more threads oversubscribe the cores (docs/results.md, "Threads"). The
-        caller's thread count is restored when it returns."""
+        """SB3's ``learn``, with one torch thread on a CPU device: the scoring worker runs beside the training thread,
+        and more threads oversubscribed the cores (docs/results.md, "Threads"). The caller's thread count is restored
+        when it returns."""
         with torch_threads(1 if self.device.type == "cpu" else None):
-            if self.curiosity is not None and self.curiosity.scorer.use_process and self.env is not None and self._deferring_wrapper(self.env) is not None:
-                self.curiosity.start_scoring_process()  # starts beside pretraining, with this thread's count
             if reset_num_timesteps:
                 self.global_rng.pending = None
             else:

@@ -95,7 +95,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs)
         self.module.ensure_envs(self.num_envs)
         #: set by PPO_GoCu during its rollouts (``mode="separate"`` only): step_wait hands the scoring to the
-        #: module's worker process and leaves (ticket, infos, extrinsic rewards) in ``deferred``
+        #: module's worker thread and leaves (ticket, infos, extrinsic rewards) in ``deferred``
         self.defer = False
         self.deferred: tuple[Any, list[dict], np.ndarray] | None = None
 
@@ -121,7 +121,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
                     for i in done_idx:
                         reached[i] = infos[i]["terminal_observation"]
         if self.defer:
-            # the scoring runs in the module's worker process; the caller takes it with take_deferred()
+            # the scoring runs in the module's worker thread; the caller takes it with take_deferred()
             ticket = self.module.submit(reached, dones)
             self.deferred = (ticket, infos, np.asarray(rewards, dtype=np.float32).copy())
             return obs, rewards, dones, infos

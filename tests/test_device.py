@@ -14,24 +14,21 @@ def test_the_models_device_reaches_the_module():
     model = PPO_GoCu("MlpPolicy", make_vec_env(ChainEnv, n_envs=2, seed=0), device="cpu", curiosity_kwargs=SMALL_CURIOSITY)
     assert model.curiosity.device == model.device == th.device("cpu")
     assert next(model.curiosity.vae.parameters()).device == th.device("cpu")
-    assert model.curiosity.scorer.use_process  # a CPU module scores in a worker process
     with pytest.raises(ValueError, match=r"curiosity_kwargs\['device'\]='meta' differs from the model's device cpu"):
         PPO_GoCu("MlpPolicy", make_vec_env(ChainEnv, n_envs=2, seed=0), device="cpu", curiosity_kwargs={**SMALL_CURIOSITY, "device": "meta"})
 
 
 @pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
 def test_ppo_gocu_trains_its_curiosity_on_the_gpu():
-    """device="cuda": the VAE and the predictor live and train on the GPU, the scoring runs in the training process,
-    and the rewards are finite."""
+    """device="cuda": the VAE and the predictor live and train on the GPU, and the rewards are finite."""
     env = make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=4, seed=0)
     model = PPO_GoCu("CnnPolicy", env, n_steps=64, batch_size=64, seed=0, device="cuda",
                      curiosity_kwargs={**TINY_IMAGE_CURIOSITY, "predictor_train_freq": 256, "vae_train_freq": 512})
     module = model.curiosity
-    assert module.device.type == "cuda" and not module.scorer.use_process
+    assert module.device.type == "cuda"
     model.learn(1024)
     assert all(p.device.type == "cuda" for net in (module.vae, module.predictor) for p in net.parameters())
     assert module.pretrained and module.last_predictor_update > 0 and module.last_vae_update > 0
-    assert module.scorer.process is None
     assert np.isfinite(model.rollout_buffer.intrinsic_rewards).all() and model.rollout_buffer.intrinsic_rewards.any()
 
 

@@ -715,8 +715,8 @@ def test_a_loaded_module_gives_the_same_rewards_bit_for_bit(tmp_path, decay):
 
 
 @pytest.mark.parametrize("lag", [1, 3])
-def test_scoring_in_the_worker_process_gives_the_same_rewards_and_state_bit_for_bit(lag):
-    """submit()/collect() with the scoring in the worker process, taken ``lag`` steps later, against step(): the
+def test_scoring_in_the_worker_gives_the_same_rewards_and_state_bit_for_bit(lag):
+    """submit()/collect() with the scoring in the worker thread, taken ``lag`` steps later, against step(): the
     same rewards, and the same module state once everything is collected (memo, counts, normaliser, stores)."""
     space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
     sync = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0, revisit_decay="inverse_sqrt")
@@ -761,8 +761,8 @@ def test_state_dict_takes_the_scores_in_flight_first():
 
 
 @pytest.mark.parametrize("episodic", [False, True])
-def test_ppo_gocu_scoring_in_the_worker_process_matches_the_synchronous_run(episodic):
-    """r_gc scored in the worker process while the envs take the next steps, against every step scored in the
+def test_ppo_gocu_scoring_in_the_worker_matches_the_synchronous_run(episodic):
+    """r_gc scored in the worker thread while the envs take the next steps, against every step scored in the
     training thread: the same buffer rewards, policy and module, bit for bit; infos carry the same gocu_* entries
     once the rollout ends."""
     runs, seen = [], []
@@ -772,15 +772,17 @@ def test_ppo_gocu_scoring_in_the_worker_process_matches_the_synchronous_run(epis
             self.steps = getattr(self, "steps", []) + [self.locals["infos"]]
             return True
 
-    for in_process in (True, False):
+    for in_worker in (True, False):
         th.manual_seed(0)
         curiosity = dict(predictor_train_freq=128)
         model = small_model(curiosity=curiosity, intrinsic_episodic=episodic)
-        model.curiosity.scorer.use_process = in_process
+        if not in_worker:
+            dispatch = model.curiosity.scorer.dispatch
+            model.curiosity.scorer.dispatch = lambda ticket, background, dispatch=dispatch: dispatch(ticket, False)
         model.env.envs[0].unwrapped.max_steps = 7  # truncations: the episodic stream bootstraps its head
         cb = Infos()
         model.learn(256, callback=cb)
-        assert (model.curiosity.scorer.process is not None) == in_process
+        assert (model.curiosity.scorer.worker is not None) == in_worker
         runs.append(model)
         seen.append([[info["gocu_reward"] for info in infos] for infos in cb.steps])
     a, b = runs

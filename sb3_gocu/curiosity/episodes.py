@@ -54,8 +54,6 @@ class Episodes:
         self.goal_obs = np.zeros((0, n_goals, *raw_shape), dtype=raw_dtype)
         self.has_goals = np.zeros(0, dtype=bool)  # per env: its episode has K goals (none while the goal buffer is empty)
         self.goal_parts = th.zeros(0, n_goals, goal_part_size)
-        self.goal_version = np.zeros(0, dtype=np.int64)  # bumped at every change of an env's goal halves
-        self.goal_stamp = 0
         self.ids = np.zeros(0, dtype=np.int64)
         self.next_id = 0
         self.states: list[deque] = []  # the episode's most recent raw states (goal candidates)
@@ -72,7 +70,6 @@ class Episodes:
         self.goal_obs = np.concatenate([self.goal_obs, np.zeros((extra, *self.goal_obs.shape[1:]), dtype=self.goal_obs.dtype)])
         self.has_goals = np.concatenate([self.has_goals, np.zeros(extra, dtype=bool)])
         self.goal_parts = th.cat([self.goal_parts, th.zeros(extra, *self.goal_parts.shape[1:])])
-        self.goal_version = np.concatenate([self.goal_version, np.zeros(extra, dtype=np.int64)])
         self.ids = np.concatenate([self.ids, np.arange(self.next_id, self.next_id + extra)])
         self.next_id += extra
         self.states += [deque(maxlen=EPISODE_MEMORY) for _ in range(extra)]
@@ -91,10 +88,7 @@ class Episodes:
         self.next_id += 1
 
     def touch_goals(self, env_indices: np.ndarray) -> None:
-        """Mark the goal halves of ``env_indices`` as changed (a scoring process re-reads them), and drop their
-        episodes' reward memos (computed against other goal halves)."""
-        self.goal_stamp += 1
-        self.goal_version[env_indices] = self.goal_stamp
+        """The goal halves of ``env_indices`` change: drop their episodes' reward memos (computed against the old ones)."""
         for e in env_indices:
             self.rewards[e].clear()
 

@@ -22,7 +22,6 @@ import copy
 import dataclasses
 import functools
 import math
-import os
 import time
 from typing import Any
 
@@ -54,8 +53,7 @@ class GoalCuriosityModule:
     """Goal-based curiosity (GoCu) on batches of observations.
 
     :param observation_space: observation space of the (vectorised) environment
-    :param device: torch device of the networks (a CPU module scores in a worker process when asked to score in
-        the background, a GPU module in the caller)
+    :param device: torch device of the networks
     :param seed: seed of the module's random generators (the networks' initial weights depend on it alone)
     :param settings: the settings of :class:`~sb3_gocu.curiosity.config.CuriosityConfig`, by name (``n_goals``,
         ``goal_strategy``, ``reward_scale``, ...), each checked
@@ -97,9 +95,8 @@ class GoalCuriosityModule:
         self.trajectories = TrajectoryStore(cfg.predictor_train_freq, cfg.embed_dim, min_per_env=2 * cfg.max_distance)
         self.normalizer = IntrinsicReturnNormalizer(cfg.intrinsic_gamma)
         self.episodes = Episodes(cfg.n_goals, raw_shape, raw_dtype, self.predictor.hidden[0].out_features)
-        use_process = self.device.type == "cpu" and os.name == "posix"
-        to_tensor = functools.partial(self.adapter.to_tensor, device=self.device)  # picklable, for the scoring process
-        self.scorer = Scorer(self.episodes, cfg.embed_dim, to_tensor, (cfg.alpha, cfg.aggregation, cfg.reward_scale), use_process)
+        to_tensor = functools.partial(self.adapter.to_tensor, device=self.device)
+        self.scorer = Scorer(self.episodes, cfg.embed_dim, to_tensor, (cfg.alpha, cfg.aggregation, cfg.reward_scale))
 
         #: when True, :meth:`step` records observations (memory bank, trajectory store, episodes) and updates the
         #: normaliser; a training callback switches it on
@@ -247,14 +244,14 @@ class GoalCuriosityModule:
 
     def submit(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None, background: bool = True) -> ScoringTicket:
         """First half of :meth:`step`: everything but the embedding and scoring of the states new to their episode,
-        which run in the worker process when ``background`` (a CPU module on a POSIX system) while the caller goes
+        which run in the worker thread when ``background`` while the caller goes
         on (e.g. steps the envs again). Take the rewards with :meth:`collect`, in submission order; the values are
         the same either way.
 
         :param observations: as for :meth:`step`
         :param dones: as for :meth:`step`
         :param env_indices: as for :meth:`step`
-        :param background: score in the worker process if the module has one
+        :param background: score in the worker thread
         """
         t0 = time.perf_counter()
         raw = self.adapter.extract(observations)
@@ -311,11 +308,6 @@ class GoalCuriosityModule:
         """Take every outstanding ticket (before the networks, the goals or the state change hands)."""
         while self.scorer.outstanding:
             self.collect(self.scorer.outstanding[0])
-
-    def start_scoring_process(self) -> Any:
-        """Start the worker process now, if the module scores in one (a CPU module on a POSIX system) and it has not
-        started yet: it takes a few seconds, beside whatever the caller does meanwhile."""
-        return self.scorer.start_process()
 
     # ------------------------------------------------------------------ learning
     def add_finished_episode_goals(self) -> int:

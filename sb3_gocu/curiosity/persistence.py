@@ -81,9 +81,7 @@ def load_module_state(module: GoalCuriosityModule, state: dict[str, Any], strict
     if envs is not None:
         n = int(envs["episode_ids"].shape[0])
         cfg = module.config
-        stamp = module.episodes.goal_stamp  # goal versions go on rising: the scoring process compares them
         module.episodes = Episodes(cfg.n_goals, module.adapter.raw_shape, module.adapter.raw_dtype, module.predictor.hidden[0].out_features)
-        module.episodes.goal_stamp = stamp
         module.scorer.episodes, module.scorer.pending = module.episodes, []
         module.trajectories = TrajectoryStore(cfg.predictor_train_freq, cfg.embed_dim, min_per_env=2 * cfg.max_distance)
         module.normalizer.returns = module.normalizer.returns[:0]

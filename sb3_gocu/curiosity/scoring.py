@@ -4,15 +4,15 @@ Between two updates of the networks, the reward of a state against an episode's 
 it is memoised per episode on the observation's bytes (an observation seen again in the same episode costs a
 hash), and phi on the observation alone until the next VAE update. A batch of states is a
 :class:`ScoringTicket`: :meth:`Scorer.lookup` finds what is memoised, :meth:`Scorer.dispatch` computes the rest
-(the embedding of new observations and eq 13) in the caller or in a worker process
-(:class:`~sb3_gocu.curiosity.process.ProcessScorer`), and :meth:`Scorer.take` commits the results, in submission
-order. Where it is computed does not change a value. No SB3 import.
+(the embedding of new observations and eq 13) in the caller or in a worker thread, and :meth:`Scorer.take` commits
+the results, in submission order. Where it is computed does not change a value. No SB3 import.
 """
 
 from __future__ import annotations
 
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
 import numpy as np
@@ -76,51 +76,33 @@ class ScoringTicket:
         self.folded: FoldedPredictor | None = None
         self.factor: np.ndarray | None = None  # revisit factor
         self.recording = False
-        self.future: Any = None  # the scoring process's answer
-        self.compute_time = 0.0
-        self.compute_cpu_time = 0.0
+        self.future: Any = None  # the worker's computation
+        self.compute_time = 0.0  # seconds the computation took
         self.result: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class Scorer:
-    """Memoised scoring of tickets, in the caller or in a worker process.
+    """Memoised scoring of tickets, in the caller or in one worker thread (in submission order).
 
     :param episodes: the per-env episode state (its reward memos, ids and goal halves)
     :param embed_dim: size of phi
-    :param to_tensor: raw batch -> the encoder's input on the networks' device (picklable, for the process)
+    :param to_tensor: raw batch -> the encoder's input on the networks' device
     :param eq13_args: (alpha, h, delta) of eq 13
-    :param use_process: whether :meth:`dispatch` with ``background=True`` may send tickets to a worker process
     """
 
     def __init__(self, episodes: Episodes, embed_dim: int, to_tensor: Callable[[np.ndarray], th.Tensor],
-                 eq13_args: tuple[float, str, float], use_process: bool) -> None:
+                 eq13_args: tuple[float, str, float]) -> None:
         self.episodes, self.embed_dim, self.to_tensor, self.eq13_args = episodes, embed_dim, to_tensor, eq13_args
-        self.use_process = use_process
-        self.process: Any = None  # a ProcessScorer, once started
-        #: a ticket dispatched while this many or more of the process's tickets are unanswered (or while sending it
-        #: would first wait for answers) is scored in the caller instead (None: never)
-        self.spill: int | None = None
+        self.worker: ThreadPoolExecutor | None = None  # started by the first background ticket
         self.pending: list[dict[bytes, tuple[ScoringTicket, int]]] = []  # states of each episode being scored
         self.outstanding: deque[ScoringTicket] = deque()
         self.phi_memo: dict[bytes, Any] = {}  # key -> phi, or (ticket, row) while that ticket embeds it
         self.cache_hits = self.cache_lookups = 0  # cumulative
-        self.spilled_tickets = 0
-        self.time_in_process = 0.0  # the process's scoring (overlaps the caller's work)
-        self.cpu_in_process = 0.0
-        self.time_waiting = 0.0  # the caller waiting for the process's scores
+        self.time_in_worker = 0.0  # the worker's scoring (overlaps the caller's work)
+        self.time_waiting = 0.0  # the caller waiting for the worker's scores
 
     def grow(self, n_envs: int) -> None:
         self.pending += [{} for _ in range(n_envs - len(self.pending))]
-
-    def start_process(self) -> Any:
-        """The worker process, started now if not yet (it takes a few seconds, beside whatever the caller does)."""
-        if not self.use_process:
-            raise ValueError("this module scores in the caller (scoring_process=False)")
-        if self.process is None:
-            from sb3_gocu.curiosity.process import ProcessScorer
-
-            self.process = ProcessScorer(self.to_tensor)
-        return self.process
 
     def lookup(self, raw: np.ndarray, env_indices: np.ndarray, keys: list[bytes], encoder: Any, folded: FoldedPredictor) -> ScoringTicket:
         """Memo lookups of one observation per env: rewards known from the episode's memo, rows equal to a row still
@@ -170,40 +152,34 @@ class Scorer:
         return ticket
 
     def dispatch(self, ticket: ScoringTicket, background: bool) -> None:
-        """Compute the ticket's ``miss`` rows: in the worker process if ``background`` (and the process is used and
-        not behind by ``spill`` tickets), else now."""
-        if len(ticket.miss) and background and self.use_process and not self._spill(ticket):
-            # the process keeps each env's goal halves: it is sent those changed since it last had them
-            ticket.future = self.start_process().submit(ticket, self.eq13_args, self.episodes.goal_parts, self.episodes.goal_version)
-        elif len(ticket.miss):
+        """Compute the ticket's ``miss`` rows: in the worker thread if ``background`` (it computes the tickets in
+        submission order, so a ticket's phi taken from an earlier one is there), else now."""
+        if len(ticket.miss):
             # a copy (indexing) of the episodes' goal halves: a new episode may start before the rewards are taken
             ticket.goal_parts = self.episodes.goal_parts[th.from_numpy(ticket.env_indices[ticket.miss])]
-            for _, earlier, _ in ticket.phi_from:  # a later ticket may read this one's phi
-                if earlier.future is not None:
-                    earlier.future.result()
-            ticket.computed = self._compute(ticket)
+            if background:
+                if self.worker is None:  # its torch thread count: the caller's, so that it computes the caller's bits
+                    self.worker = ThreadPoolExecutor(1, "gocu-score", initializer=th.set_num_threads, initargs=(th.get_num_threads(),))
+                ticket.future = self.worker.submit(self._compute, ticket)
+            else:
+                for _, earlier, _ in ticket.phi_from:  # now, so that a later ticket may read this one's phi
+                    if earlier.future is not None:
+                        earlier.future.result()
+                ticket.computed = self._compute(ticket)
         self.outstanding.append(ticket)
-
-    def _spill(self, ticket: ScoringTicket) -> bool:
-        """Whether to score this ticket in the caller rather than send it to the process (``spill``)."""
-        if self.spill is None or self.process is None:
-            return False
-        if self.process.unanswered() < self.spill and not self.process.would_wait(ticket):
-            return False
-        if any(earlier.future is not None and not earlier.future.done() for _, earlier, _ in ticket.phi_from):
-            return False
-        self.spilled_tickets += 1
-        return True
 
     @th.inference_mode()
     def _compute(self, ticket: ScoringTicket) -> np.ndarray:
-        """phi of the ticket's ``embed_rows`` and eq 13 for its ``miss`` rows, in the caller."""
+        """phi of the ticket's ``embed_rows`` and eq 13 for its ``miss`` rows (pure: reads what the ticket holds,
+        writes its phi rows; the caller or the worker)."""
+        t0 = time.perf_counter()
         for j, earlier, row in ticket.phi_from:
             ticket.phi[j] = earlier.phi[row]
         phi = ticket.phi[ticket.miss]
         embed_pos = np.searchsorted(ticket.miss, ticket.embed_rows)
         r = score_rows(phi, embed_pos, ticket.raw, ticket.encoder, self.to_tensor, ticket.goal_parts, ticket.has_goals, ticket.folded, self.eq13_args)
         ticket.phi[ticket.miss] = phi
+        ticket.compute_time = time.perf_counter() - t0
         return r
 
     def take(self, ticket: ScoringTicket) -> None:
@@ -218,8 +194,7 @@ class Scorer:
             t_wait = time.perf_counter()
             computed = ticket.future.result()
             self.time_waiting += time.perf_counter() - t_wait
-            self.time_in_process += ticket.compute_time
-            self.cpu_in_process += ticket.compute_cpu_time
+            self.time_in_worker += ticket.compute_time
         else:
             computed = ticket.computed
         env_indices, keys, episodes = ticket.env_indices, ticket.keys, self.episodes

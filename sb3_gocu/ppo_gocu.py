@@ -57,9 +57,6 @@ PAPER_PPO_KWARGS: Mapping[str, Any] = MappingProxyType(
     dict(n_steps=128, batch_size=256, n_epochs=4, learning_rate=1e-4, ent_coef=0.01, gamma=0.99, vf_coef=0.5, clip_range=0.2)
 )
 PAPER_N_ENVS = 16
-#: a rollout step's curiosity is collected this many steps after it was submitted, so the worker thread scores
-#: up to this many steps while the envs step on (docs/results.md, "Speed-ups, each against its absence")
-SCORING_LAG = 4
 
 
 class PPO_GoCu(PPO):
@@ -71,8 +68,8 @@ class PPO_GoCu(PPO):
     gamma 0.99, vf 0.5, clip 0.2) instead of SB3's, the others to SB3's. The paper runs 16 envs
     (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. During
     a rollout, the module embeds and scores each step's new states in its worker thread while the envs take the
-    next steps (the same rewards, bit for bit, as scoring in the training thread); a step's ``infos["gocu_*"]``
-    entries are written :data:`SCORING_LAG` steps later (the last ones at the rollout's end). Plus:
+    next step (the same rewards, bit for bit, as scoring in the training thread); a step's ``infos["gocu_*"]``
+    entries are written when the next step has been taken (the last one's at the rollout's end). Plus:
 
     :param policy: "MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a two-headed policy class
     :param env: an env id, an env, or a VecEnv; without a GoCu wrapper it is wrapped in a
@@ -278,7 +275,7 @@ class PPO_GoCu(PPO):
                 if gocu is not None:
                     waiting.append((gocu.deferred, None))
                     gocu.deferred = None
-                    while len(waiting) > SCORING_LAG:
+                    while len(waiting) > 1:  # the step before this one: scored while the envs took this one
                         self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
                     intrinsic = np.zeros(env.num_envs, dtype=np.float32)
                 else:

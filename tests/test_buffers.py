@@ -93,7 +93,7 @@ def test_rollout_bootstraps_both_heads_on_truncation(episodic, in_worker):
 
     def step_spy():
         out = original_step()
-        infos_log.append(out[3])  # the dicts themselves: gocu_* entries arrive SCORING_LAG steps later
+        infos_log.append(out[3])  # the dicts themselves: gocu_* entries arrive a step later
         return out
 
     model.env.step_wait = step_spy

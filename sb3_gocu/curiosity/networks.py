@@ -15,11 +15,7 @@ from torch.nn import functional as F
 
 
 
-def _noise(like: th.Tensor, generator: th.Generator | None, noise: th.Tensor | None = None) -> th.Tensor:
-    if noise is not None:
-        if noise.shape != like.shape:
-            raise ValueError(f"noise must have the latent's shape {tuple(like.shape)}, got {tuple(noise.shape)}")
-        return noise
+def _noise(like: th.Tensor, generator: th.Generator | None) -> th.Tensor:
     if generator is None or generator.device == like.device:
         return th.randn(like.shape, generator=generator, dtype=like.dtype, device=like.device)
     return th.randn(like.shape, generator=generator, dtype=like.dtype, device=generator.device).to(like.device)  # a CPU generator, a GPU VAE
@@ -71,15 +67,14 @@ class ConvVAE(nn.Module):
         return F.relu(self.fc(self.conv(x).flatten(1)))
 
     def forward(
-        self, x: th.Tensor, generator: th.Generator | None = None, noise: th.Tensor | None = None
+        self, x: th.Tensor, generator: th.Generator | None = None
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """:param generator: source of the reparameterisation noise (training mode); the module's own generator
             keeps training independent of the global torch RNG (which the policy samples from)
-        :param noise: the reparameterisation noise itself, shape (batch, latent_dim) (instead of drawing it)
         :return: reconstruction logits, mu, log-variance"""
         phi = self.embed(x)
         mu, logvar = self.mu(phi), self.logvar(phi)
-        z = mu + _noise(mu, generator, noise) * th.exp(0.5 * logvar) if self.training else mu
+        z = mu + _noise(mu, generator) * th.exp(0.5 * logvar) if self.training else mu
         y = self.decoder_fc(z).view(-1, 32, *self.feature_hw)
         logits = self.deconv(y)[..., : self.input_shape[1], : self.input_shape[2]]
         return logits, mu, logvar
@@ -120,11 +115,11 @@ class MlpVAE(nn.Module):
         return self.encoder(x)
 
     def forward(
-        self, x: th.Tensor, generator: th.Generator | None = None, noise: th.Tensor | None = None
+        self, x: th.Tensor, generator: th.Generator | None = None
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         phi = self.embed(x)
         mu, logvar = self.mu(phi), self.logvar(phi)
-        z = mu + _noise(mu, generator, noise) * th.exp(0.5 * logvar) if self.training else mu
+        z = mu + _noise(mu, generator) * th.exp(0.5 * logvar) if self.training else mu
         return self.decoder(z), mu, logvar
 
     def reconstruction_loss(self, recon: th.Tensor, x: th.Tensor) -> th.Tensor:

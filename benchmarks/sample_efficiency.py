@@ -77,11 +77,16 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
-from sb3_gocu import PAPER_N_ENVS, PAPER_PPO_KWARGS, PaperCNN, PPO_GoCu
+from sb3_gocu import PAPER_N_ENVS, PAPER_PPO_KWARGS, GoCuCallback, GoCuVecEnvWrapper, PaperCNN, PPO_GoCu
+from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES
 from sb3_gocu.checkpoints import atomic_write
+from sb3_gocu.wrappers import find_gocu_module
 
-ALGOS = ("ppo", "ppo_gocu")
+#: ppo: plain PPO; ppo_gocu: PPO_GoCu (two value heads); ppo_sum: plain PPO (one value head) on
+#: ``GoCuVecEnvWrapper(mode="sum")`` with ``GoCuCallback``, the drop-in pipeline
+ALGOS = ("ppo", "ppo_gocu", "ppo_sum")
+CURIOUS = ("ppo_gocu", "ppo_sum")
 PPO_SETTINGS: dict[str, Any] = dict(PAPER_PPO_KWARGS)  # both algorithms get them explicitly
 N_ENVS = PAPER_N_ENVS
 COLUMNS = (
@@ -194,7 +199,7 @@ class SampleEfficiencyCallback(BaseCallback):
         else:
             mean = std = norm = float("nan")
         dt = time.perf_counter() - self._t_rollout
-        module = getattr(self.model, "curiosity", None)
+        module = self.run.module(self.model)
         goals = module.goal_buffer.size if module is not None else float("nan")
         self.run.add_row(self.num_timesteps, mean, std, norm, (self.num_timesteps - self._steps_rollout) / max(dt, 1e-9), goals)
 
@@ -301,6 +306,10 @@ class Run:
         buf = io.BytesIO()
         model.save(buf)
         atomic_write_bytes(self.ckpt_dir / f"model_{steps}.zip", buf.getvalue())
+        if self.algo == "ppo_sum":  # a plain PPO model file does not hold the wrapper's curiosity module
+            module_buf = io.BytesIO()
+            th.save(self.module(model).state_dict(), module_buf)
+            atomic_write_bytes(self.ckpt_dir / f"curiosity_{steps}.pth", module_buf.getvalue())
         # the state names the model file: written second, so a state file always has its model
         atomic_write_bytes(self.ckpt_dir / f"state_{steps}.json", json.dumps(self.state(steps), allow_nan=True).encode())
         atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
@@ -308,6 +317,7 @@ class Run:
         for old_steps, _ in list_checkpoints(self.ckpt_dir)[: -self.args.keep_checkpoints]:
             (self.ckpt_dir / f"state_{old_steps}.json").unlink(missing_ok=True)
             (self.ckpt_dir / f"model_{old_steps}.zip").unlink(missing_ok=True)
+            (self.ckpt_dir / f"curiosity_{old_steps}.pth").unlink(missing_ok=True)
         if self.args.verbose:
             print(f"[{self.name}] checkpoint at {steps} steps ({time.perf_counter() - t0:.1f} s)", flush=True)
 
@@ -323,7 +333,9 @@ class Run:
             except (OSError, ValueError) as e:
                 print(f"[{self.name}] skipping unreadable {state_path.name}: {e}")
                 continue
-            if not model_readable(model_path):
+            if not model_readable(model_path) or (
+                self.algo == "ppo_sum" and not (self.ckpt_dir / f"curiosity_{steps}.pth").is_file()
+            ):
                 print(f"[{self.name}] skipping checkpoint {steps}: {model_path.name} is missing or corrupt")
                 continue
             if state["config"] != self.config:
@@ -345,18 +357,40 @@ class Run:
         return None
 
     # ------------------------------------------------------------ training
-    def make_env(self, seed: int) -> Any:
-        return make_vec_env(self.args.env, n_envs=self.args.n_envs, seed=seed)
+    def make_env(self, seed: int, module_state: dict[str, Any] | None = None) -> Any:
+        """The training env; for ppo_sum wrapped in ``GoCuVecEnvWrapper(mode="sum")`` (its module restored from
+        ``module_state`` when given)."""
+        env = make_vec_env(self.args.env, n_envs=self.args.n_envs, seed=seed)
+        if self.algo != "ppo_sum":
+            return env
+        module = GoalCuriosityModule(env.observation_space, seed=self.seed, **curiosity_kwargs(self.args))
+        if module_state is not None:
+            module.load_state_dict(module_state)
+        return GoCuVecEnvWrapper(env, module=module, mode="sum", intrinsic_coef=self.args.intrinsic_coef)
+
+    @staticmethod
+    def module(model: Any) -> GoalCuriosityModule | None:
+        """The model's curiosity module (PPO_GoCu's, or that of a GoCu wrapper in its env), None for plain PPO."""
+        if isinstance(model, PPO_GoCu):
+            return model.curiosity
+        found = find_gocu_module(model.get_env())
+        return None if found is None else found[0]
 
     def build(self) -> Any:
         a = self.args
         ppo = ppo_settings(a)
-        if self.algo == "ppo":
+        if self.algo in ("ppo", "ppo_sum"):
             return PPO("CnnPolicy", self.make_env(self.seed), seed=self.seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **ppo)
         return PPO_GoCu(
             "CnnPolicy", self.make_env(self.seed), seed=self.seed, intrinsic_coef=a.intrinsic_coef,
             curiosity_kwargs=curiosity_kwargs(a), verbose=0, **ppo,
         )
+
+    def callbacks(self) -> list[BaseCallback]:
+        callbacks: list[BaseCallback] = [SampleEfficiencyCallback(self)]
+        if self.algo == "ppo_sum":
+            callbacks.append(GoCuCallback())
+        return callbacks
 
     def execute(self) -> None:
         restored = self._restore()
@@ -371,8 +405,11 @@ class Run:
                 print(f"[{self.name}] already at {steps} >= {self.args.timesteps} steps: skipped")
                 atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
                 return
-            cls = PPO if self.algo == "ppo" else PPO_GoCu
-            model = cls.load(model_path, env=self.make_env(self.seed + steps), device="cpu")
+            cls = PPO_GoCu if self.algo == "ppo_gocu" else PPO
+            module_state = None
+            if self.algo == "ppo_sum":
+                module_state = th.load(self.ckpt_dir / f"curiosity_{steps}.pth", weights_only=True)
+            model = cls.load(model_path, env=self.make_env(self.seed + steps, module_state), device="cpu")
             self.resumed_from.append(steps)
             self.done = False
             atomic_write_bytes(self.csv_path, csv_bytes(self.rows))  # drop rows written after the checkpoint
@@ -385,7 +422,9 @@ class Run:
             remaining, reset = self.args.timesteps, True
             print(f"[{self.name}] new run: {self.args.env}, {self.args.timesteps} steps", flush=True)
         self.session_start = time.perf_counter()
-        model.learn(remaining, callback=SampleEfficiencyCallback(self), reset_num_timesteps=reset)
+        if self.args.constant_curiosity:
+            hold_curiosity_constant(self.module(model))
+        model.learn(remaining, callback=self.callbacks(), reset_num_timesteps=reset)
         if self.stopped_at_threshold is None:
             self.done = True
             self.checkpoint(model)
@@ -393,6 +432,31 @@ class Run:
             atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
             print(f"[{self.name}] reached {self.args.threshold} at {self.stopped_at_threshold} steps: stopped", flush=True)
         model.env.close()
+
+
+def hold_curiosity_constant(module: GoalCuriosityModule | None) -> None:
+    """Ablation, not a library setting (``--constant-curiosity``): every state's r_gc is replaced by the running
+    mean of the r_gc the module computed so far (over the visits the revisit rule pays), so what remains of the
+    curiosity is the revisit rule and the normalisation. The module computes and trains as before; the
+    ``gocu_raw_reward`` a step reports is the constant times the revisit factor. The running mean lives in this
+    process: a resumed run starts it afresh."""
+    if module is None:
+        raise SystemExit("--constant-curiosity applies to ppo_gocu and ppo_sum")
+    take = module.scorer.take
+    sums = [0.0, 0.0]  # sum of the paid r_gc, visits paid
+
+    def take_constant(ticket: Any) -> None:
+        take(ticket)
+        rewards = ticket.rewards.astype(np.float64)
+        paid = np.ones(len(rewards)) if ticket.factor is None else ticket.factor.astype(np.float64)
+        finite = np.isfinite(rewards)
+        if ticket.recording:
+            sums[0] += float((rewards * paid)[finite].sum())
+            sums[1] += float(paid[finite].sum())
+        mean = sums[0] / sums[1] if sums[1] > 0 else float(np.mean(rewards[finite])) if finite.any() else 0.0
+        ticket.rewards = np.full(len(rewards), mean, dtype=np.float32)  # a new array: the episode memos keep the true values
+
+    module.scorer.take = take_constant
 
 
 def model_readable(path: pathlib.Path) -> bool:
@@ -431,9 +495,11 @@ def curiosity_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 def run_config(args: argparse.Namespace, algo: str, seed: int) -> dict[str, Any]:
     """What a checkpoint must agree with to be resumed (the step budget is not part of it: it can grow)."""
     cfg: dict[str, Any] = {"algo": algo, "seed": seed, "env": args.env, "n_envs": args.n_envs, "ppo": ppo_settings(args), "window": args.window}
-    if algo == "ppo_gocu":
+    if algo in CURIOUS:
         cfg["curiosity_kwargs"] = curiosity_kwargs(args)
         cfg["intrinsic_coef"] = args.intrinsic_coef
+        if args.constant_curiosity:
+            cfg["constant_curiosity"] = True
     return json.loads(json.dumps(cfg))
 
 
@@ -568,7 +634,7 @@ def write_summary(args: argparse.Namespace, command: str) -> str:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env", default=None, help="any registered gymnasium id (default GoCu/DoorKey-8x8-v0)")
-    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
+    p.add_argument("--algos", nargs="+", choices=ALGOS, default=["ppo", "ppo_gocu"])
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--timesteps", type=int, default=800_000)
     p.add_argument("--out", default=None, help="output dir (default benchmarks/out/<env name>)")
@@ -590,6 +656,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-goals", type=int, default=None, help="K")
     p.add_argument("--intrinsic-coef", type=float, default=0.25, help="sigma of eq 10")
     p.add_argument("--curiosity-kwargs", default="{}", help="JSON dict of GoalCuriosityModule keywords")
+    p.add_argument(
+        "--constant-curiosity", action="store_true",
+        help="ablation: r_gc replaced by its running mean (benchmarks/ablations.py; not a library setting)",
+    )
     # overrides of the SPEC's PPO settings (for tests and quick checks)
     p.add_argument("--n-envs", type=int, default=N_ENVS)
     p.add_argument("--n-steps", type=int, default=PPO_SETTINGS["n_steps"])

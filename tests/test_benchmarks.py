@@ -425,3 +425,53 @@ def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_ti
     assert saved["ppo_gocu"]["weights_sha256"] == gocu["weights_sha256"] and saved["command"][1:3] == ["--env", "GoCu/DoorKey-5x5-v0"]
 
 
+
+
+def test_ppo_sum_resumes_with_its_module(se, tmp_path):
+    """ppo_sum (plain PPO on the sum-mode wrapper) checkpoints its curiosity module beside the model and resumes it."""
+    th.set_num_threads(1)
+    out = tmp_path / "sum"
+    se.main(tiny_args(out, 2048, "--algos", "ppo_sum"))
+    rows = read(out / "ppo_sum_seed0.csv")
+    assert [int(r["steps"]) for r in rows][-1] == 2048
+    assert all(r["intrinsic_mean"] != "" and float(r["goals"]) > 0 for r in rows)  # the wrapper's r_gc and goals
+    ckpt = out / "checkpoints" / "ppo_sum_seed0"
+    state = th.load(ckpt / "curiosity_2048.pth", weights_only=True)
+    assert state["counters"]["pretrained"]
+    se.main(tiny_args(out, 3072, "--algos", "ppo_sum"))
+    rows = read(out / "ppo_sum_seed0.csv")
+    assert [int(r["steps"]) for r in rows][-1] == 3072 and len(rows) == 6
+    assert sorted(p.name for p in ckpt.glob("curiosity_*.pth")) == ["curiosity_2048.pth", "curiosity_3072.pth"]
+
+
+def test_constant_curiosity_pays_one_value(se, tmp_path):
+    """--constant-curiosity: every paid r_gc of a rollout is one value (the running mean), unpaid revisits 0."""
+    th.set_num_threads(1)
+    out = tmp_path / "constant"
+    seen = []
+    original = se.hold_curiosity_constant
+
+    def spy(module):
+        original(module)
+        take = module.scorer.take
+
+        def recording_take(ticket):
+            take(ticket)
+            seen.append(ticket.rewards.copy())
+
+        module.scorer.take = recording_take
+
+    se.hold_curiosity_constant = spy
+    try:
+        se.main(tiny_args(out, 1024, "--algos", "ppo_gocu", "--constant-curiosity"))
+    finally:
+        se.hold_curiosity_constant = original
+    assert len(seen) > 100
+    assert all(len(np.unique(r)) == 1 for r in seen)  # one value per batch
+    values = np.array([r[0] for r in seen])
+    assert len(np.unique(values)) > 1 and np.all(values > 0)  # the running mean moves, and stays positive
+    rows = read(out / "ppo_gocu_seed0.csv")
+    config = json.loads(sorted((out / "checkpoints" / "ppo_gocu_seed0").glob("state_*.json"))[-1].read_text())["config"]
+    assert config["constant_curiosity"] is True and rows
+    with pytest.raises(SystemExit, match="other settings"):  # a constant run is not resumed as a normal one
+        se.main(tiny_args(out, 2048, "--algos", "ppo_gocu"))

@@ -8,7 +8,12 @@ from __future__ import annotations
 
 import sys
 
-from sb3_gocu.zoo import register_zoo
+from sb3_gocu._extras import missing_extra
+
+try:
+    from sb3_gocu.zoo import register_zoo
+except ModuleNotFoundError as e:  # rl-zoo3 and optuna come with the [zoo] extra
+    raise missing_extra(e, "sb3_gocu.enjoy", "zoo") from e
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -11,7 +11,12 @@ from __future__ import annotations
 import runpy
 import sys
 
-from sb3_gocu.zoo import register_zoo
+from sb3_gocu._extras import missing_extra
+
+try:
+    from sb3_gocu.zoo import register_zoo
+except ModuleNotFoundError as e:  # rl-zoo3 and optuna come with the [zoo] extra
+    raise missing_extra(e, "sb3_gocu.record_video", "zoo") from e
 
 
 def main(argv: list[str] | None = None) -> None:

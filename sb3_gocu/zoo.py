@@ -9,7 +9,7 @@
   back into model arguments (:func:`convert_ppo_gocu_params`, used by ``--trial-id``).
 
 It also makes the zoo's ``ppo`` sampler keep the configured ``features_extractor_class`` (the zoo's sampler
-replaces the whole ``policy_kwargs``, so the 32x32 entries of ``hyperparams/ppo.yml`` would fall back to
+replaces the whole ``policy_kwargs``, so the 32x32 entries of ``sb3_gocu/hyperparams/ppo.yml`` would fall back to
 NatureCNN, which cannot take 32x32 images). Nothing else of the zoo is changed.
 
 Sampled curiosity settings are merged into the configured ones: the zoo hands the sampler nothing but the
@@ -18,10 +18,14 @@ so the sampler reads the configured values from the calling ``ExperimentManager`
 and returns configured + sampled. Settings that are not sampled (``image_channels`` for Atari, the MuJoCo
 predictor size, a small ``pretrain_steps`` given on the command line) therefore survive tuning.
 
-Config files: the YAML files live in ONE place, the repository's top-level ``hyperparams/`` directory
-(``hyperparams/ppo_gocu.yml``, ``hyperparams/ppo.yml``, ``hyperparams/ppo_dropin.yml``). The launchers find it
-next to the ``sb3_gocu`` package (a source checkout or an editable install), or in the directory named by the
-environment variable ``SB3_GOCU_HYPERPARAMS``; see :func:`hyperparams_dir` and :func:`default_conf_file`.
+Config files: the YAML files live in ONE place, the package's ``sb3_gocu/hyperparams/`` directory
+(``sb3_gocu/hyperparams/ppo_gocu.yml``, ``sb3_gocu/hyperparams/ppo.yml``, ``sb3_gocu/hyperparams/ppo_dropin.yml``),
+which ships in the wheel as package data, so the launchers find it however the package is installed; the
+environment variable ``SB3_GOCU_HYPERPARAMS`` names another directory to use instead; see :func:`hyperparams_dir`
+and :func:`default_conf_file`.
+
+rl-zoo3 and Optuna come with the ``[zoo]`` extra (``pip install "sb3-gocu[zoo]"``); importing this module without
+them raises a ``ModuleNotFoundError`` that says so.
 """
 
 from __future__ import annotations
@@ -38,7 +42,13 @@ from typing import Any
 # and nothing imported below imports mujoco
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import optuna  # noqa: E402
+from sb3_gocu._extras import missing_extra  # noqa: E402
+
+try:
+    import optuna
+    import rl_zoo3  # noqa: F401
+except ModuleNotFoundError as e:  # the [zoo] extra brings rl-zoo3 and optuna
+    raise missing_extra(e, "sb3_gocu.zoo", "zoo") from e
 
 import sb3_gocu  # noqa: E402, F401  (registers the GoCu/... env ids before the zoo checks --env)
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES  # noqa: E402
@@ -46,7 +56,7 @@ from sb3_gocu.curiosity.reward import REVISIT_DECAYS  # noqa: E402
 from sb3_gocu.ppo_gocu import PPO_GoCu  # noqa: E402
 
 ALGO = "ppo_gocu"
-#: environment variable naming a directory of ``{algo}.yml`` files that replaces the repository's ``hyperparams/``
+#: environment variable naming a directory of ``{algo}.yml`` files that replaces the package's ``sb3_gocu/hyperparams/``
 HYPERPARAMS_ENV_VAR = "SB3_GOCU_HYPERPARAMS"
 #: algorithms for which the launchers pick our config file by default
 DEFAULT_CONF_ALGOS = ("ppo_gocu", "ppo")
@@ -236,12 +246,11 @@ def register_zoo() -> None:
 
 # ---------------------------------------------------------------------------------------------- config files
 def hyperparams_dir() -> Path | None:
-    """Where the launchers look for ``{algo}.yml``: ``$SB3_GOCU_HYPERPARAMS`` if set, else the repository's
-    top-level ``hyperparams/`` (next to the ``sb3_gocu`` package: a source checkout or an editable install).
-    None if neither exists (e.g. a wheel install: then pass ``--conf-file`` yourself)."""
+    """Where the launchers look for ``{algo}.yml``: ``$SB3_GOCU_HYPERPARAMS`` if set (and a directory), else the
+    package's own ``hyperparams/`` (``sb3_gocu/hyperparams/``, installed with the package). None if neither exists."""
     env = os.environ.get(HYPERPARAMS_ENV_VAR)
     candidates = [Path(env).expanduser()] if env else []
-    candidates.append(Path(__file__).resolve().parent.parent / "hyperparams")
+    candidates.append(Path(__file__).resolve().parent / "hyperparams")
     for candidate in candidates:
         if candidate.is_dir():
             return candidate
@@ -251,8 +260,8 @@ def hyperparams_dir() -> Path | None:
 def default_conf_file(algo: str, env_id: str | None) -> Path | None:
     """Our config file for ``algo``, or None to leave rl-zoo3's default.
 
-    For ``ppo_gocu`` (the zoo has no file for it): ``hyperparams/ppo_gocu.yml`` whenever it exists. For ``ppo``:
-    ``hyperparams/ppo.yml`` only if it has an entry for ``env_id``, so ``--algo ppo`` on any other env keeps the
+    For ``ppo_gocu`` (the zoo has no file for it): ``ppo_gocu.yml`` of :func:`hyperparams_dir` whenever it exists.
+    For ``ppo``: its ``ppo.yml`` only if it has an entry for ``env_id``, so ``--algo ppo`` on any other env keeps the
     zoo's own ``ppo.yml`` (with its ``atari`` fallback).
     """
     if algo not in DEFAULT_CONF_ALGOS:

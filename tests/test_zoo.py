@@ -34,7 +34,7 @@ from sb3_gocu.zoo import (
 )
 
 REPO = Path(__file__).resolve().parents[1]
-HYPERPARAMS = REPO / "hyperparams"
+HYPERPARAMS = REPO / "sb3_gocu" / "hyperparams"
 DOORKEY = "GoCu/DoorKey-5x5-v0"
 DOORKEY_DIR = "GoCu-DoorKey-5x5-v0"  # the zoo's folder name for the id
 ENV_IDS = (

@@ -11,6 +11,9 @@ importing ``minigrid`` or ``mujoco``: the entry points are strings, resolved by 
 
 Because registration happens on import, ``gym.make("sb3_gocu.envs:GoCu/DoorKey-8x8-v0")`` works in
 a fresh process (e.g. a ``SubprocVecEnv`` worker started with ``spawn``/``forkserver``).
+
+Making the envs needs an extra of the package: ``[minigrid]`` (DoorKey), ``[mujoco]`` (VisualReacher,
+VisualPusher) or ``[atari]`` (ale-py); without it, ``gym.make`` raises a ``ModuleNotFoundError`` naming the extra.
 """
 
 from __future__ import annotations

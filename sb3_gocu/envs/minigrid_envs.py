@@ -15,16 +15,21 @@ from __future__ import annotations
 import os
 from typing import Any, Optional, SupportsFloat
 
-import cv2
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from sb3_gocu._extras import missing_extra
+
 # minigrid imports pygame, which prints a banner on import unless told not to.
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
-from minigrid.core.world_object import Door, Key  # noqa: E402
-from minigrid.envs import DoorKeyEnv  # noqa: E402
+try:
+    import cv2
+    from minigrid.core.world_object import Door, Key
+    from minigrid.envs import DoorKeyEnv
+except ModuleNotFoundError as e:  # the [minigrid] extra brings both
+    raise missing_extra(e, "sb3_gocu.envs.minigrid_envs (the GoCu/DoorKey-* ids)", "minigrid") from e
 
 __all__ = ["FRAME_CACHE_SIZE", "TASK_PHASES", "DoorKeyRGB32", "DoorKeyViewEnv", "make_doorkey"]
 

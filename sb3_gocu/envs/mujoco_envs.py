@@ -15,13 +15,19 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from typing import Any, Callable, Optional, SupportsFloat  # noqa: E402
 
-import cv2  # noqa: E402
 import gymnasium as gym  # noqa: E402
-import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
-from gymnasium.envs.mujoco.pusher_v5 import PusherEnv  # noqa: E402
-from gymnasium.envs.mujoco.reacher_v5 import ReacherEnv  # noqa: E402
+
+from sb3_gocu._extras import missing_extra  # noqa: E402
+
+try:
+    import cv2
+    import mujoco
+    from gymnasium.envs.mujoco.pusher_v5 import PusherEnv
+    from gymnasium.envs.mujoco.reacher_v5 import ReacherEnv
+except ModuleNotFoundError as e:  # the [mujoco] extra brings them (gymnasium[mujoco]: mujoco, imageio, ...)
+    raise missing_extra(e, "sb3_gocu.envs.mujoco_envs (GoCu/VisualReacher-v0, GoCu/VisualPusher-v0)", "mujoco") from e
 
 __all__ = [
     "PUSHER_CAMERA",

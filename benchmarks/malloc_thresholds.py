@@ -15,7 +15,7 @@ def fix_malloc_thresholds(trim: int = 1 << 30, mmap: int = 32 << 20) -> bool:
     By default glibc raises both thresholds as the process frees large blocks, so a process's first training
     run keeps giving memory back and faulting it in again, and the runs after it do not: measured in one
     process, plain PPO's update took 64.3 s when it ran first and 48.1 s when it ran after PPO_GoCu (40,960
-    steps, README "Throughput"). Fixed thresholds give every run the same allocator, in this process and (through
+    steps; docs/results.md, "What a step costs"). Fixed thresholds give every run the same allocator, in this process and (through
     ``MALLOC_TRIM_THRESHOLD_`` and ``MALLOC_MMAP_THRESHOLD_``) in the processes it starts. :return: whether glibc
     took both settings
     """

@@ -5,7 +5,7 @@
     python benchmarks/sample_efficiency.py --out benchmarks/out/doorkey8 --summary-only
     python benchmarks/plot_curves.py benchmarks/out/doorkey8
 
-Both algorithms get the SPEC's PPO settings (16 envs, n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
+Both algorithms get the paper's PPO settings (16 envs, n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
 gamma 0.99, vf 0.5, clip 0.2) and the paper's CNN (plain PPO: ``features_extractor_class=PaperCNN``;
 PPO_GoCu's CnnPolicy picks it itself). PPO_GoCu uses the module's defaults (the paper's settings) unless
 ``--goal-strategy``, ``--n-goals`` or ``--curiosity-kwargs`` say otherwise.
@@ -620,7 +620,7 @@ def write_summary(args: argparse.Namespace, command: str) -> str:
             *(f"- machine (runs): {m}" for m in machines),
             *([f"- machine (this summary): {here}"] if (here := machine_line(args.threads)) not in machines else []),
             f"- threads: {args.threads} (torch.set_num_threads) in this command; each run's own is the --threads of the "
-            "command that wrote it (default 1; 2 before 2026-12-02). One command executes its runs one after another; separate commands "
+            "command that wrote it (default 1). One command executes its runs one after another; separate commands "
             "may have run side by side.",
             "",
         ]
@@ -660,7 +660,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--constant-curiosity", action="store_true",
         help="ablation: r_gc replaced by its running mean (benchmarks/ablations.py; not a library setting)",
     )
-    # overrides of the SPEC's PPO settings (for tests and quick checks)
+    # overrides of the paper's PPO settings (for tests and quick checks)
     p.add_argument("--n-envs", type=int, default=N_ENVS)
     p.add_argument("--n-steps", type=int, default=PPO_SETTINGS["n_steps"])
     p.add_argument("--batch-size", type=int, default=PPO_SETTINGS["batch_size"])

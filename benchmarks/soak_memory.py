@@ -112,7 +112,7 @@ def main() -> None:
     tmp = None
     if args.save_freq > 0:
         tmp = tempfile.TemporaryDirectory(prefix="gocu_soak_")
-        callbacks.append(GoCuCheckpointCallback(args.save_freq, tmp.name, keep_last=2))
+        callbacks.append(GoCuCheckpointCallback(max(1, args.save_freq // args.n_envs), tmp.name))  # save_freq counts calls
     t0 = time.perf_counter()
     model.learn(args.timesteps, callback=callbacks)
     wall = time.perf_counter() - t0

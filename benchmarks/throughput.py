@@ -2,7 +2,7 @@
 
     python benchmarks/throughput.py --env GoCu/DoorKey-8x8-v0 --timesteps 100000 --threads 1
 
-Prints, for the same env, step count and PPO settings (SPEC: 16 envs, n_steps 128, batch 256, 4 epochs):
+Prints, for the same env, step count and PPO settings (the paper's: 16 envs, n_steps 128, batch 256, 4 epochs):
 raw env steps/s with random actions (the ceiling), plain PPO steps/s, PPO_GoCu steps/s (paper settings:
 K = 50, 5x512 predictor, P_m = 20k, P_vae = 100k, VAE pretraining on 10k random-policy observations, all
 included), their ratio, and PPO_GoCu's time split into env stepping, policy forward and rollout

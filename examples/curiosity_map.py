@@ -177,7 +177,7 @@ def phase_observations(env: gym.Env, phase: str, objects: tuple[Key, tuple[int, 
     """
     base = env.unwrapped
     key, key_pos, door, _ = objects
-    start_pos, start_dir = tuple(int(v) for v in base.agent_pos), int(base.agent_dir)
+    start_pos = tuple(int(v) for v in base.agent_pos)
     set_phase(base, phase, key, key_pos, door)
     reach = reachable_cells(base, start_pos)
     cells = [(x, y) for y in range(base.height) for x in range(base.width) if reach[y, x]]

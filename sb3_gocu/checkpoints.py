@@ -40,7 +40,7 @@ import cloudpickle
 import numpy as np
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.callbacks import CheckpointCallback
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
 from sb3_gocu.curiosity.checks import is_integer
@@ -288,6 +288,17 @@ def read_env_state(path: PathLike, module: Any = None) -> VecEnv:
         return load_env_state(archive.read(ENV_MEMBER), module)
 
 
+def without_members(path: PathLike | io.BufferedIOBase, members: list[str]) -> io.BytesIO:
+    """A copy of the zip at ``path`` in memory, less ``members`` (which are never read)."""
+    out = io.BytesIO()
+    with zipfile.ZipFile(path) as source, zipfile.ZipFile(out, mode="w") as copy:
+        for info in source.infolist():
+            if info.filename not in members:
+                copy.writestr(info, source.read(info))
+    out.seek(0)
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- saving
 def save_model(
     model: BaseAlgorithm,
@@ -325,7 +336,7 @@ def save_model(
 _CHECKPOINT_RE = r"^{prefix}_(\d+)_steps\.zip$"
 
 
-def list_checkpoints(save_path: PathLike, name_prefix: str = "gocu_model") -> list[tuple[int, pathlib.Path]]:
+def list_checkpoints(save_path: PathLike, name_prefix: str = "rl_model") -> list[tuple[int, pathlib.Path]]:
     """Checkpoints ``{name_prefix}_{steps}_steps.zip`` in ``save_path`` (the names SB3's ``CheckpointCallback``
     and :class:`GoCuCheckpointCallback` write), oldest first, as (steps, path)."""
     pattern = re.compile(_CHECKPOINT_RE.format(prefix=re.escape(name_prefix)))
@@ -337,7 +348,7 @@ def list_checkpoints(save_path: PathLike, name_prefix: str = "gocu_model") -> li
     return sorted(out)
 
 
-def latest_checkpoint(save_path: PathLike, name_prefix: str = "gocu_model", verify: bool = True) -> pathlib.Path | None:
+def latest_checkpoint(save_path: PathLike, name_prefix: str = "rl_model", verify: bool = True) -> pathlib.Path | None:
     """The newest checkpoint in ``save_path``, or None.
 
     :param verify: skip files that fail :func:`check_model_file` (with a warning)
@@ -353,14 +364,14 @@ def latest_checkpoint(save_path: PathLike, name_prefix: str = "gocu_model", veri
     return None
 
 
-class GoCuCheckpointCallback(BaseCallback):
-    """Crash-safe PPO_GoCu checkpoints at rollout boundaries.
-
-    Once per ``save_freq`` environment steps (counted over all envs, like ``total_timesteps``), at the start of
-    the next rollout (after PPO's update and the curiosity update of the previous one: the one point where the
-    whole training state is consistent) and at the end of training, writes
-    ``{save_path}/{name_prefix}_{num_timesteps}_steps.zip`` atomically (:func:`save_model`): the model, the
-    curiosity module's whole state, the global RNG states and, with ``save_env=True``, the env stack.
+class GoCuCheckpointCallback(CheckpointCallback):
+    """SB3's ``CheckpointCallback`` for PPO_GoCu: the same arguments with the same meaning (``save_freq`` counts
+    calls, i.e. vector steps: ``save_freq * n_envs`` env steps between checkpoints), the same file names
+    (``{save_path}/{name_prefix}_{num_timesteps}_steps.zip``, the VecNormalize statistics beside them), and three
+    differences: a checkpoint due in a rollout is written at the start of the next one (after PPO's update and the
+    curiosity update: the one point where the whole training state is consistent), or at the end of training; the
+    file is written atomically (:func:`save_model`); and it carries the curiosity module's whole state and the global
+    RNG states (as every ``PPO_GoCu.save`` does).
 
     Resume after a crash with::
 
@@ -371,73 +382,68 @@ class GoCuCheckpointCallback(BaseCallback):
     (SB3's ``CheckpointCallback`` also writes atomic PPO_GoCu files, since ``PPO_GoCu.save`` is atomic, but it
     saves in the middle of a rollout: a run resumed from it repeats that rollout's steps.)
 
-    :param save_freq: environment steps between checkpoints (>= 1)
+    :param save_freq: calls (vector steps) between checkpoints (>= 1), as for ``CheckpointCallback``
     :param save_path: directory of the checkpoints (created)
     :param name_prefix: file name prefix
-    :param save_env: also save the env stack (``DummyVecEnv`` of picklable envs only; if it cannot be pickled a
-        warning is given once and the checkpoints go on without it)
-    :param keep_last: keep only the newest ``keep_last`` checkpoints of this prefix (None: keep all)
-    :param verbose: 1 prints each checkpoint written
+    :param save_replay_buffer: as for ``CheckpointCallback`` (PPO_GoCu has no replay buffer)
+    :param save_vecnormalize: also save the ``VecNormalize`` statistics, if the env has them
+    :param save_env: also save the env stack in the file, for an exact resumption with ``load(..., restore_env=True)``
+        (``DummyVecEnv`` of picklable envs only; if it cannot be pickled a warning is given once and the checkpoints
+        go on without it)
+    :param verbose: 2 prints each checkpoint written
     """
 
     def __init__(
         self,
         save_freq: int,
         save_path: PathLike,
-        name_prefix: str = "gocu_model",
+        name_prefix: str = "rl_model",
+        save_replay_buffer: bool = False,
+        save_vecnormalize: bool = False,
         save_env: bool = False,
-        keep_last: int | None = None,
         verbose: int = 0,
     ) -> None:
-        super().__init__(verbose)
         if not (is_integer(save_freq) and save_freq >= 1):
             raise ValueError(f"save_freq must be an integer >= 1, got {save_freq!r}")
-        if keep_last is not None and not (is_integer(keep_last) and keep_last >= 1):
-            raise ValueError(f"keep_last must be None or an integer >= 1, got {keep_last!r}")
-        self.save_freq = int(save_freq)
-        self.save_path = pathlib.Path(save_path)
-        self.name_prefix = name_prefix
+        super().__init__(int(save_freq), os.fspath(save_path), name_prefix, save_replay_buffer, save_vecnormalize, verbose)
         self.save_env = save_env
-        self.keep_last = keep_last
-        self._saved_bucket = 0
+        self._due = False
         self.last_path: pathlib.Path | None = None
 
     def _init_callback(self) -> None:
         if not hasattr(self.model, "curiosity"):
             raise TypeError("GoCuCheckpointCallback saves PPO_GoCu models (their file carries the curiosity state)")
-        self.save_path.mkdir(parents=True, exist_ok=True)
+        super()._init_callback()
         remove_stale_temporaries(self.save_path, self.name_prefix)
 
-    def _on_training_start(self) -> None:
-        self._saved_bucket = self.model.num_timesteps // self.save_freq
-
     def _on_step(self) -> bool:
+        if self.n_calls % self.save_freq == 0:
+            self._due = True  # written at the rollout boundary
         return True
 
     def _on_rollout_start(self) -> None:
-        self._maybe_save()
+        self._save_if_due()
 
     def _on_training_end(self) -> None:
-        self._maybe_save()
+        self._save_if_due()
 
-    def _maybe_save(self) -> None:
-        bucket = self.model.num_timesteps // self.save_freq
-        if bucket <= self._saved_bucket:
+    def _save_if_due(self) -> None:
+        if not self._due:
             return
-        path = self.save_path / f"{self.name_prefix}_{self.model.num_timesteps}_steps.zip"
-        save_env = self.save_env
-        if save_env:
+        self._due = False
+        path = pathlib.Path(self._checkpoint_path(extension="zip"))
+        if self.save_env:
             try:
                 save_model(self.model, path, save_env=True)
             except TypeError as e:
                 warnings.warn(f"GoCuCheckpointCallback: saving without the env state from now on: {e}")
-                self.save_env = save_env = False
-        if not save_env:
+                self.save_env = False
+        if not self.save_env:
             save_model(self.model, path)
-        self._saved_bucket = bucket
         self.last_path = path
-        if self.verbose:
-            print(f"GoCu checkpoint: {path}")
-        if self.keep_last is not None:
-            for _, old in list_checkpoints(self.save_path, self.name_prefix)[: -self.keep_last]:
-                old.unlink(missing_ok=True)
+        if self.verbose >= 2:
+            print(f"Saving model checkpoint to {path}")
+        if self.save_replay_buffer and getattr(self.model, "replay_buffer", None) is not None:
+            self.model.save_replay_buffer(self._checkpoint_path("replay_buffer_", extension="pkl"))  # type: ignore[attr-defined]
+        if self.save_vecnormalize and self.model.get_vec_normalize_env() is not None:
+            self.model.get_vec_normalize_env().save(self._checkpoint_path("vecnormalize_", extension="pkl"))  # type: ignore[union-attr]

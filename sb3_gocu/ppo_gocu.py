@@ -23,6 +23,7 @@ import io
 import json
 import pathlib
 import pickle
+import warnings
 import zipfile
 from collections import deque
 from types import MappingProxyType
@@ -35,14 +36,15 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
-from stable_baselines3.common.utils import obs_as_tensor
+from stable_baselines3.common.utils import explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_gocu.buffers import GoCuDictRolloutBuffer, GoCuRolloutBuffer
 from sb3_gocu.callbacks import GoCuCallback
-from sb3_gocu.checkpoints import GlobalRNGState, check_model_file, read_env_state, save_model
-from sb3_gocu.curiosity import GoalCuriosityModule
+from sb3_gocu.checkpoints import GlobalRNGState, check_model_file, read_env_state, save_model, without_members
+from sb3_gocu.curiosity import CuriosityConfig, GoalCuriosityModule
 from sb3_gocu.curiosity.training import torch_threads
 from sb3_gocu.curiosity.checks import DEFAULT_INTRINSIC_COEF, check_intrinsic_coef, is_flag
 from sb3_gocu.policies import GoCuActorCriticCnnPolicy, GoCuActorCriticPolicy, GoCuMultiInputActorCriticPolicy
@@ -50,7 +52,7 @@ from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module, find_gocu_wra
 
 SelfPPOGoCu = TypeVar("SelfPPOGoCu", bound="PPO_GoCu")
 
-#: The paper's PPO settings for MiniGrid (SPEC, "Settings"): PPO_GoCu's defaults for PPO's own arguments, in
+#: The paper's PPO settings for MiniGrid: PPO_GoCu's defaults for PPO's own arguments, in
 #: place of SB3's (n_steps 2048, batch 64, 10 epochs, lr 3e-4, ent 0). The paper trains on ``PAPER_N_ENVS`` envs,
 #: which the caller makes: ``make_vec_env(env_id, n_envs=PAPER_N_ENVS)``.
 PAPER_PPO_KWARGS: Mapping[str, Any] = MappingProxyType(
@@ -144,13 +146,14 @@ class PPO_GoCu(PPO):
             self.env = GoCuVecEnvWrapper(self.env, module=self.curiosity, mode="separate")
 
     def _setup_model(self) -> None:
-        self._attach_curiosity()
-        assert self.curiosity is not None
+        if not self._acting_only:
+            self._attach_curiosity()
+        intrinsic_gamma = self.curiosity_kwargs.get("intrinsic_gamma", CuriosityConfig.intrinsic_gamma) if self.curiosity is None else self.curiosity.intrinsic_gamma
         if self.rollout_buffer_class is None or not issubclass(self.rollout_buffer_class, (GoCuRolloutBuffer, GoCuDictRolloutBuffer)):
             self.rollout_buffer_class = GoCuDictRolloutBuffer if isinstance(self.observation_space, spaces.Dict) else GoCuRolloutBuffer
         self.rollout_buffer_kwargs = {
             **(self.rollout_buffer_kwargs or {}),
-            "intrinsic_gamma": self.curiosity.intrinsic_gamma,
+            "intrinsic_gamma": intrinsic_gamma,
             "intrinsic_coef": self.intrinsic_coef,
             "intrinsic_episodic": self.intrinsic_episodic,
         }
@@ -158,7 +161,8 @@ class PPO_GoCu(PPO):
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         super().set_env(env, force_reset)
-        self._attach_curiosity()
+        if not self._acting_only:
+            self._attach_curiosity()
         if force_reset:
             self._last_obs = None
 
@@ -183,21 +187,46 @@ class PPO_GoCu(PPO):
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "curiosity"]
 
+    #: objects of the file besides SB3's: the curiosity module's state and the global RNG states
+    GOCU_OBJECTS = ("curiosity", "global_rng")
+    #: True for a model loaded with ``load(..., curiosity=False)``: it acts, and has no curiosity module to train
+    _acting_only = False
+
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
-        return [*state_dicts, "curiosity", "global_rng"], variables
+        omitted = set(getattr(self, "_omitted_objects", ())) | ({"curiosity"} if self.curiosity is None else set())
+        return [*state_dicts, *(name for name in self.GOCU_OBJECTS if name not in omitted)], variables
 
     def save(
         self, path: str | pathlib.Path | io.BufferedIOBase, exclude: Iterable[str] | None = None, include: Iterable[str] | None = None, save_env: bool = False
     ) -> None:
         """SB3's ``save``, atomic: the zip is written to a temporary file beside ``path`` and renamed onto it, so
         a crash never leaves a half-written model file. The file carries the curiosity module's whole state and
-        the global RNG states.
+        the global RNG states, unless ``exclude`` names them: ``save(path, exclude=["curiosity"])`` writes a file to
+        act with (the policy alone); loading it gives a fresh curiosity module.
 
         :param save_env: also pickle the training env stack into the file, for an exact resumption with
             ``load(path, restore_env=True)`` (in-process envs only; see :mod:`sb3_gocu.checkpoints`)
         """
-        save_model(self, path, exclude=list(exclude) if exclude else None, include=list(include) if include else None, save_env=save_env)
+        exclude = list(exclude) if exclude else None
+        self._omitted_objects = set(exclude or ()) & set(self.GOCU_OBJECTS)
+        try:
+            save_model(self, path, exclude=exclude, include=list(include) if include else None, save_env=save_env)
+        finally:
+            self._omitted_objects = set()
+
+    def set_parameters(self, load_path_or_dict: str | dict[str, Any], exact_match: bool = True, device: th.device | str = "auto") -> None:
+        """SB3's ``set_parameters``; a file or dict without the curiosity state (``save(..., exclude=["curiosity"])``)
+        leaves the module as it is, with a warning."""
+        if not isinstance(load_path_or_dict, dict):
+            _, load_path_or_dict, _ = load_from_zip_file(load_path_or_dict, device=device, load_data=False)
+        self._omitted_objects = set(self.GOCU_OBJECTS) - set(load_path_or_dict)
+        if "curiosity" in self._omitted_objects and not self._acting_only:
+            warnings.warn("the parameters hold no curiosity state (saved with exclude=['curiosity']): the curiosity module starts afresh")
+        try:
+            super().set_parameters(load_path_or_dict, exact_match=exact_match, device=device)
+        finally:
+            self._omitted_objects = set()
 
     @classmethod
     def load(  # type: ignore[override]
@@ -209,6 +238,7 @@ class PPO_GoCu(PPO):
         print_system_info: bool = False,
         force_reset: bool = True,
         restore_env: bool = False,
+        curiosity: bool = True,
         **kwargs: Any,
     ) -> SelfPPOGoCu:
         """SB3's ``load``, with the curiosity module. A corrupt or truncated file raises a ``ValueError`` naming it.
@@ -216,18 +246,35 @@ class PPO_GoCu(PPO):
         :param restore_env: use the env stack saved in the file (``save(..., save_env=True)``) as it was at the
             save, ``_last_obs`` included, so ``learn(..., reset_num_timesteps=False)`` continues the run
             exactly (unpickles code from the file: only for files you wrote)
+        :param curiosity: False: to act only, leave the file's curiosity state unread and build no curiosity module
+            (less memory and time); such a model predicts but does not learn
         """
         if restore_env and env is not None:
             raise ValueError("give either env or restore_env=True, not both")
+        if restore_env and not curiosity:
+            raise ValueError("restore_env=True continues the run: it needs the curiosity state (curiosity=True)")
         if not isinstance(path, io.IOBase):
             path = check_model_file(path)
+        source: Any = path if curiosity else without_members(path, [f"{name}.pth" for name in cls.GOCU_OBJECTS])
+        cls._acting_only = not curiosity
         try:
-            model = super().load(path, env=env, device=device, custom_objects=custom_objects, print_system_info=print_system_info, force_reset=force_reset, **kwargs)
+            model = super().load(source, env=env, device=device, custom_objects=custom_objects, print_system_info=print_system_info, force_reset=force_reset, **kwargs)
         except (zipfile.BadZipFile, EOFError, pickle.UnpicklingError, json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ValueError(f"{path}: the model file is corrupt or unreadable ({type(e).__name__}: {e})") from e
+        finally:
+            cls._acting_only = False
+        model._acting_only = not curiosity
         if restore_env:
             model.set_env(read_env_state(path, model.curiosity), force_reset=False)
         return model
+
+    def train(self) -> None:
+        """SB3's PPO update; ``train/explained_variance`` is the extrinsic head's, and
+        ``train/explained_variance_intrinsic`` the curiosity head's."""
+        super().train()
+        buffer = self.rollout_buffer
+        assert isinstance(buffer, (GoCuRolloutBuffer, GoCuDictRolloutBuffer))
+        self.logger.record("train/explained_variance_intrinsic", explained_variance(buffer.intrinsic_values.flatten(), buffer.intrinsic_returns.flatten()))
 
     # ------------------------------------------------------------------ rollout
     def collect_rollouts(
@@ -353,6 +400,8 @@ class PPO_GoCu(PPO):
         """SB3's ``learn``, with one torch thread on a CPU device: the scoring worker runs beside the training thread,
         and more threads oversubscribed the cores (docs/results.md, "Threads"). The caller's thread count is restored
         when it returns."""
+        if self._acting_only:
+            raise ValueError("this model was loaded with curiosity=False, to act: load it with curiosity=True to train it")
         with torch_threads(1 if self.device.type == "cpu" else None):
             if reset_num_timesteps:
                 self.global_rng.pending = None

@@ -8,6 +8,9 @@ report in ``infos``:
 * ``"gocu_raw_reward"``: r_gc before normalisation (eq 13);
 * ``"extrinsic_reward"``: the environment's reward, unchanged.
 
+Where an episode ends, Monitor's ``info["episode"]`` gets ``"gocu_r"``: the episode's sum of normalised r_gc (what
+``rollout/ep_intrinsic_rew_mean`` averages).
+
 ``mode="sum"`` returns ``r_e + intrinsic_coef * r_gc`` as the reward (for any SB3 algorithm);
 ``mode="separate"`` leaves the reward extrinsic (for :class:`~sb3_gocu.PPO_GoCu`, which reads r_gc from
 ``infos``). Put the wrappers *above* ``Monitor`` (as ``make_vec_env`` does), so that the episode returns
@@ -63,12 +66,17 @@ class _RewardReport:
         self.module = _make_module(observation_space, module, curiosity_kwargs)
         self.mode = mode
         self.intrinsic_coef = check_intrinsic_coef(intrinsic_coef)
+        self._episode_sums: dict[int, float] = {}  # env -> normalised r_gc summed over its current episode
 
-    def _report(self, info: dict, extrinsic: float, raw: float, normalized: float) -> float:
-        """Write the three rewards into ``info`` and return the reward the algorithm sees."""
+    def _report(self, info: dict, extrinsic: float, raw: float, normalized: float, env: int = 0) -> float:
+        """Write the three rewards into ``info`` (and the episode's curiosity sum into Monitor's ``info["episode"]``
+        at its end) and return the reward the algorithm sees."""
         info["extrinsic_reward"] = float(extrinsic)
         info["gocu_raw_reward"] = float(raw)
         info["gocu_reward"] = float(normalized)
+        self._episode_sums[env] = self._episode_sums.get(env, 0.0) + float(normalized)
+        if isinstance(info.get("episode"), dict):
+            info["episode"]["gocu_r"] = self._episode_sums.pop(env)
         return float(extrinsic) + self.intrinsic_coef * float(normalized) if self.mode == "sum" else float(extrinsic)
 
 
@@ -102,6 +110,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
     def reset(self) -> Any:
         obs = self.venv.reset()
         self.module.begin_episodes(np.arange(self.num_envs))
+        self._episode_sums.clear()
         return obs
 
     def step_wait(self) -> VecEnvStepReturn:
@@ -126,7 +135,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
             self.deferred = (ticket, infos, np.asarray(rewards, dtype=np.float32).copy())
             return obs, rewards, dones, infos
         raw, normalized = self.module.step(reached, dones)
-        rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i]) for i, info in enumerate(infos)], dtype=np.float32)
+        rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i], i) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
 
     def take_deferred(self, deferred: tuple[Any, list[dict], np.ndarray]) -> np.ndarray:
@@ -135,7 +144,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         ticket, infos, extrinsic = deferred
         raw, normalized = self.module.collect(ticket)
         for i, info in enumerate(infos):
-            self._report(info, extrinsic[i], raw[i], normalized[i])
+            self._report(info, extrinsic[i], raw[i], normalized[i], i)
         return normalized
 
 
@@ -173,6 +182,7 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
     def reset(self, **kwargs: Any) -> tuple[Any, dict]:
         obs, info = self.env.reset(**kwargs)
         self.module.begin_episodes(self._index)
+        self._episode_sums.clear()
         return obs, info
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:

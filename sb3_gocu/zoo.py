@@ -114,7 +114,7 @@ def convert_gocu_trial_params(params: dict[str, Any], base: dict[str, Any] | Non
     """GoCu trial parameters -> ``intrinsic_coef`` and ``curiosity_kwargs`` (merged over ``base``'s).
 
     ``n_goals`` is capped at the configured ``goal_buffer_size``; when the config does not fix ``max_distance``
-    (d_max) it follows a as ``ceil(2 a / beta)`` (SPEC decision 3: d_max must reach past a / beta so both
+    (d_max) it follows a as ``ceil(2 a / beta)`` (d_max must reach past a / beta so both
     label classes occur; the default 30 is 2a for a = 15).
     """
     base = base or {}
@@ -229,14 +229,16 @@ def _configured_hyperparams() -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------------- registration
-def register_zoo() -> None:
-    """Register ``ppo_gocu`` with rl-zoo3 (algorithm, sampler, converter) in this process. Idempotent."""
+def register_zoo(algorithm: type = PPO_GoCu) -> None:
+    """Register ``ppo_gocu`` with rl-zoo3 (algorithm, sampler, converter) in this process. Idempotent.
+
+    :param algorithm: the class registered (PPO_GoCu, or a subclass of it)"""
     import rl_zoo3
     import rl_zoo3.utils
     from rl_zoo3 import hyperparams_opt
 
     for algos in {id(rl_zoo3.utils.ALGOS): rl_zoo3.utils.ALGOS, id(rl_zoo3.ALGOS): rl_zoo3.ALGOS}.values():
-        algos[ALGO] = PPO_GoCu
+        algos[ALGO] = algorithm
     hyperparams_opt.HYPERPARAMS_SAMPLER[ALGO] = sample_ppo_gocu_params
     hyperparams_opt.HYPERPARAMS_CONVERTER[ALGO] = convert_ppo_gocu_params
     ppo_sampler = hyperparams_opt.HYPERPARAMS_SAMPLER.get("ppo")

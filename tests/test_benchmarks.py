@@ -239,7 +239,7 @@ def test_steps_to_threshold(se):
 
 
 def test_behaviour_compares_agent_and_random_policy(two_runs):
-    behaviour = load_script("behaviour", "benchmarks/behaviour.py")
+    behaviour = load_script("behaviour", "benchmarks/probes/behaviour.py")
     out, _ = two_runs
     model = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
     result = behaviour.main([str(model), "--env", "GoCu/DoorKey-5x5-v0", "--episodes", "2", "--seed", "3"])
@@ -254,7 +254,7 @@ def test_behaviour_compares_agent_and_random_policy(two_runs):
 
 def test_predictor_epochs_probe_replays_the_update_per_budget(two_runs):
     """Every budget starts from the checkpoint's predictor; the largest budget's last epoch is the reference."""
-    probe = load_script("predictor_epochs", "benchmarks/predictor_epochs.py")
+    probe = load_script("predictor_epochs", "benchmarks/probes/predictor_epochs.py")
     out, _ = two_runs
     model = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
     result = probe.main([str(model), "--pairs", "64", "256", "--epochs", "3", "--val-pairs", "128", "--threads", "1"])
@@ -273,7 +273,7 @@ def test_predictor_epochs_probe_replays_the_update_per_budget(two_runs):
 
 
 def test_pixel_weights_cost_times_the_fit_and_both_steps_on_a_saved_models_bank(two_runs):
-    bench = load_script("pixel_weights_cost", "benchmarks/pixel_weights_cost.py")
+    bench = load_script("pixel_weights_cost", "benchmarks/probes/pixel_weights_cost.py")
     out, _ = two_runs
     r = bench.main(["--model", str(out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"), "--batch", "8", "--steps", "2", "--repeats", "1"])
     assert 0 < r["distinct"] <= r["bank"] and r["fit_s"] > 0
@@ -288,7 +288,7 @@ def test_view_aliasing_renders_every_standable_cell_of_each_phase():
     exactly when it is one of the left room's views."""
     import gymnasium as gym
 
-    va = load_script("view_aliasing", "benchmarks/view_aliasing.py")
+    va = load_script("view_aliasing", "benchmarks/probes/view_aliasing.py")
     env = gym.make("GoCu/DoorKey-5x5-v0")
     env.reset(seed=0)
     base = env.unwrapped
@@ -345,7 +345,7 @@ def test_compare_runs_finds_the_first_differing_row(two_runs, tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def ep():
-    return load_script("embedding_phases", "benchmarks/embedding_phases.py")
+    return load_script("embedding_phases", "benchmarks/probes/embedding_phases.py")
 
 
 def test_embedding_phases_views_change_only_where_the_state_does(ep):

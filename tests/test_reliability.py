@@ -160,7 +160,6 @@ def test_module_refuses_invalid_settings(kwargs, match):
         (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=-1.0), r"intrinsic_coef \(sigma\) must be a number >= 0"),
         (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=None), r"intrinsic_coef \(sigma\) must be a number >= 0, got None"),
         (lambda: GoCuCheckpointCallback(True, "unused"), r"save_freq must be an integer >= 1, got True"),
-        (lambda: GoCuCheckpointCallback(128, "unused", keep_last=2.0), r"keep_last must be None or an integer >= 1, got 2.0"),
     ],
 )
 def test_algorithm_and_wrappers_refuse_invalid_settings(make, match):
@@ -470,11 +469,11 @@ def test_resume_from_a_checkpoint_matches_the_uninterrupted_run_bit_for_bit(kind
             return True
 
     uninterrupted = make_resume_model(kind)
-    checkpoints = GoCuCheckpointCallback(N, tmp_path, save_env=True)
+    checkpoints = GoCuCheckpointCallback(N // 2, tmp_path, save_env=True)  # calls of 2 envs: N env steps
     uninterrupted.learn(2 * N, callback=[checkpoints, GrabAtSave()])
     assert [steps for steps, _ in list_checkpoints(tmp_path)] == [N, 2 * N]
 
-    resumed = PPO_GoCu.load(tmp_path / f"gocu_model_{N}_steps.zip", restore_env=True)
+    resumed = PPO_GoCu.load(tmp_path / f"rl_model_{N}_steps.zip", restore_env=True)
     # the curiosity module at the save, bit for bit: networks, optimisers, goal buffer, memory bank, normaliser,
     # trajectory store, goal-sampling generators, per-env goals and episodes, memoised values
     assert not differences(saved_state, resumed.curiosity.state_dict())
@@ -517,7 +516,7 @@ from sb3_gocu.checkpoints import GoCuCheckpointCallback
 
 model = PPO_GoCu("MlpPolicy", make_vec_env(ChainEnv, n_envs=2, seed=0), n_steps=64, batch_size=64, n_epochs=2, seed=0,
                  curiosity_kwargs=SMALL_CURIOSITY)
-callbacks = [GoCuCheckpointCallback(256, {ckpt!r}, save_env=True),            # ours: at rollout boundaries
+callbacks = [GoCuCheckpointCallback(128, {ckpt!r}, name_prefix="gocu", save_env=True),  # ours: at rollout boundaries
              CheckpointCallback(save_freq=100, save_path={ckpt!r}, name_prefix="rl_model")]  # SB3's / the zoo's --save-freq
 print("training", flush=True)
 model.learn(10**9, callback=callbacks)
@@ -532,11 +531,11 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
     try:
         deadline = time.time() + 120
         while time.time() < deadline and proc.poll() is None:
-            if len(list_checkpoints(ckpt)) >= 3 and list_checkpoints(ckpt, "rl_model"):
+            if len(list_checkpoints(ckpt, "gocu")) >= 3 and list_checkpoints(ckpt, "rl_model"):
                 break
             time.sleep(0.05)
         assert proc.poll() is None, proc.stdout.read().decode()[-3000:]
-        assert len(list_checkpoints(ckpt)) >= 3, "no checkpoint within 120 s"
+        assert len(list_checkpoints(ckpt, "gocu")) >= 3, "no checkpoint within 120 s"
     finally:
         os.kill(proc.pid, signal.SIGKILL)  # mid-run: possibly mid-save
         proc.wait()
@@ -545,11 +544,11 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
     # every file with a checkpoint's name is complete; a temporary of a save cut short is cleaned up
     for path in ckpt.glob("*.zip"):
         check_model_file(path)
-    remove_stale_temporaries(ckpt, "gocu_model")
+    remove_stale_temporaries(ckpt, "gocu")
     remove_stale_temporaries(ckpt, "rl_model")
     assert not list(ckpt.glob(".*.tmp"))
 
-    path = latest_checkpoint(ckpt)
+    path = latest_checkpoint(ckpt, "gocu")
     steps = int(re.search(r"_(\d+)_steps", path.name).group(1))
     model = PPO_GoCu.load(path, restore_env=True)
     assert model.num_timesteps == steps and steps % 256 == 0
@@ -583,12 +582,12 @@ def test_a_failed_save_leaves_the_previous_file_whole(tmp_path, monkeypatch):
 
 def test_latest_checkpoint_skips_an_unreadable_newest_file(tmp_path):
     model = small_model()
-    callback = GoCuCheckpointCallback(128, tmp_path, keep_last=2)
+    callback = GoCuCheckpointCallback(64, tmp_path)  # 64 calls of 2 envs: every 128 env steps, as SB3's would
     model.learn(512, callback=callback)
-    assert [s for s, _ in list_checkpoints(tmp_path)] == [384, 512], "keep_last=2"
-    (tmp_path / "gocu_model_640_steps.zip").write_bytes(b"PK\x03\x04 not finished")
+    assert [s for s, _ in list_checkpoints(tmp_path)] == [128, 256, 384, 512]
+    (tmp_path / "rl_model_640_steps.zip").write_bytes(b"PK\x03\x04 not finished")
     with pytest.warns(UserWarning, match="skipping an unreadable checkpoint"):
-        assert latest_checkpoint(tmp_path).name == "gocu_model_512_steps.zip"
+        assert latest_checkpoint(tmp_path).name == "rl_model_512_steps.zip"
 
 
 # ============================================================================================ 5. determinism

@@ -109,6 +109,7 @@ class GoalCuriosityModule:
         self._reward_sums = [0.0, 0.0, 0]  # sum, sum of squares, count of the raw r_gc recorded since pop_reward_stats
         self._hits_at_pop = (0, 0)  # the scorer's (hits, lookups) at the last pop_reward_stats
         self.time_inference = 0.0  # cumulative seconds in the module's scoring calls
+        self._inference_at_pop = 0.0  # time_inference at the last pop_reward_stats
         self.time_vae = 0.0
         self.time_predictor = 0.0
         self._folded = self.predictor.fold()
@@ -424,11 +425,16 @@ class GoalCuriosityModule:
         return out
 
     def pop_reward_stats(self) -> dict[str, float]:
-        """Mean and std of the raw r_gc recorded since the last call, and the other running figures."""
+        """The figures of the steps since the last call: mean and std of the raw r_gc recorded (when any was), the
+        scorer's memo hit rate, the seconds spent scoring; and the sizes of the goal buffer and the memory bank and
+        the normaliser's std now."""
         hits, lookups = self.scorer.cache_hits - self._hits_at_pop[0], self.scorer.cache_lookups - self._hits_at_pop[1]
         self._hits_at_pop = (self.scorer.cache_hits, self.scorer.cache_lookups)
         out = {"goal_buffer_size": float(self.goal_buffer.size), "memory_size": float(self.memory.size), "return_std": self.normalizer.std,
-               "cache_hit_rate": hits / max(1, lookups), "time_inference": self.time_inference, "time_training": self.time_vae + self.time_predictor}
+               "time_inference": self.time_inference - self._inference_at_pop}
+        self._inference_at_pop = self.time_inference
+        if lookups:
+            out["cache_hit_rate"] = hits / lookups
         total, squares, count = self._reward_sums
         if count:
             mean = total / count

@@ -137,7 +137,7 @@ class PixelWeights:
     exponent 1 gives every colour the same total weight.
 
     On DoorKey the key, the door and the goal square are a few pixels of yellow or green in a grey view: the
-    paper's loss lets the VAE drop them and pay almost nothing (``benchmarks/embedding_phases.py``).
+    paper's loss lets the VAE drop them and pay almost nothing (``benchmarks/probes/embedding_phases.py``).
 
     A colour is the pixel's channel values in [0, 1], read as bytes and cut to ``min(8, 15 // C)`` bits each
     (5 bits of red, green and blue for RGB, all 8 for grey), so at most 2**15 colours. A colour the weights

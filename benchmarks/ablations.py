@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> None:
             cmd = command(variant, args.env, seed, args.timesteps, out)
             (out / variant).mkdir(parents=True, exist_ok=True)
             log = open(out / variant / f"log_seed{seed}.txt", "a")
-            log.write(f"$ {shlex.join(cmd[1:])}\n")
+            log.write(f"$ python benchmarks/sample_efficiency.py {shlex.join(cmd[2:])}\n")
             log.flush()
             print(f"start {variant} seed {seed}", flush=True)
             running.append((subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log))
@@ -106,7 +106,7 @@ def summary(args: argparse.Namespace) -> str:
     ]
     base = None
     for name, runs in data.items():
-        cells, total, solved, complete = [], 0, 0, True
+        cells, total, solved, finished, complete = [], 0, 0, 0, True
         for s in seeds:
             if s not in runs:
                 cells.append("-")
@@ -118,13 +118,14 @@ def summary(args: argparse.Namespace) -> str:
                 complete = False
                 continue
             solved += reached is not None
+            finished += 1
             total += budget if reached is None else reached
             cells.append(f"{reached:,}" if reached is not None else "not")
         summed = f"{total:,}" if complete else f"({total:,} so far)"
         if name == "defaults" and complete:
             base = total
         ratio = f"{(total / base - 1) * 100:+.1f}% steps" if base and complete and name != "defaults" else ""
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {solved} of {len(runs)} | {summed} | {ratio} |")
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {solved} of {finished} | {summed} | {ratio} |")
     text = "\n".join(
         [
             f"# Ablations: {args.env}, {budget:,} steps",
@@ -160,7 +161,7 @@ def plot(data: dict[str, dict[int, list[dict[str, Any]]]], budget: int, path: pa
         ax.set_xlabel("env steps (M)")
         ax.set_xlim(0, budget / 1e6)
     axes[0][0].set_ylabel("mean return, last 100 episodes")
-    axes[0][-1].legend(fontsize=6)
+    axes[0][0].legend(fontsize=6)
     fig.suptitle(env, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -475,3 +475,29 @@ def test_constant_curiosity_pays_one_value(se, tmp_path):
     assert config["constant_curiosity"] is True and rows
     with pytest.raises(SystemExit, match="other settings"):  # a constant run is not resumed as a normal one
         se.main(tiny_args(out, 2048, "--algos", "ppo_gocu"))
+
+
+def test_ablations_summary_counts_a_miss_at_the_budget(tmp_path):
+    """benchmarks/ablations.py summary: steps to 0.9 per seed, a miss counted as the budget, running seeds marked."""
+    ablations = load_script("ablations", "benchmarks/ablations.py")
+    se_mod = ablations.se
+
+    def write(folder, algo, seed, returns):
+        rows = [dict(algo=algo, seed=seed, steps=1000 * (i + 1), episodes=100 + i, window_episodes=100, mean_return=r, success_rate=r,
+                     key_rate=1.0, door_rate=1.0, intrinsic_mean=0.01, intrinsic_std=0.0, intrinsic_norm_mean=0.1, goals=10,
+                     wall_time_s=1.0, fps=1.0) for i, r in enumerate(returns)]
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / f"{algo}_seed{seed}.csv").write_bytes(se_mod.csv_bytes(rows))
+
+    defaults, out = tmp_path / "defaults", tmp_path / "out"
+    write(defaults, "ppo_gocu", 0, [0.1, 0.95])           # 2,000
+    write(defaults, "ppo_gocu", 1, [0.1, 0.2, 0.3])        # not within 3,000
+    write(out / "predictor_untrained", "ppo_gocu", 0, [0.1, 0.2, 0.91])   # 3,000
+    write(out / "predictor_untrained", "ppo_gocu", 1, [0.1, 0.2, 0.95])   # 3,000
+    write(out / "one_value_head", "ppo_sum", 0, [0.1])     # running: 1,000 of 3,000
+    text = ablations.main(["summary", "--out", str(out), "--timesteps", "3000", "--defaults", str(defaults)]) or (out / "summary.md").read_text()
+    lines = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ") and "---" not in line}
+    assert "| 2,000 | not | 1 of 2 | 5,000 |" in lines["defaults"]
+    assert "| 3,000 | 3,000 | 2 of 2 | 6,000 | +20.0% steps |" in lines["predictor_untrained"]
+    assert "running (1,000)" in lines["one_value_head"] and "(0 so far)" in lines["one_value_head"]
+    assert (out / "curves.png").stat().st_size > 0

@@ -153,7 +153,7 @@ class GoCuCallback(BaseCallback):
         for key, value in stats.items():
             if math.isfinite(value):  # a figure that was not measured (e.g. no held-out loss) is not logged
                 self.logger.record(f"gocu/{LOG_NAMES.get(key, key)}", value)
-        episodes = [ep["gocu_r"] for ep in getattr(self.model, "ep_info_buffer", None) or () if "gocu_r" in ep]
+        episodes = [ep["gocu_r"] for ep in self.model.ep_info_buffer if "gocu_r" in ep]
         if episodes:
             self.logger.record("rollout/ep_intrinsic_rew_mean", float(np.mean(episodes)))
 

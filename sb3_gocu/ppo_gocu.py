@@ -256,14 +256,12 @@ class PPO_GoCu(PPO):
         if not isinstance(path, io.IOBase):
             path = check_model_file(path)
         source: Any = path if curiosity else without_members(path, [f"{name}.pth" for name in cls.GOCU_OBJECTS])
-        cls._acting_only = not curiosity
         try:
-            model = super().load(source, env=env, device=device, custom_objects=custom_objects, print_system_info=print_system_info, force_reset=force_reset, **kwargs)
+            # SB3 sets the keywords on the new model before it builds it (_setup_model) and loads its parameters
+            model = super().load(source, env=env, device=device, custom_objects=custom_objects, print_system_info=print_system_info,
+                                 force_reset=force_reset, _acting_only=not curiosity, **kwargs)
         except (zipfile.BadZipFile, EOFError, pickle.UnpicklingError, json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ValueError(f"{path}: the model file is corrupt or unreadable ({type(e).__name__}: {e})") from e
-        finally:
-            cls._acting_only = False
-        model._acting_only = not curiosity
         if restore_env:
             model.set_env(read_env_state(path, model.curiosity), force_reset=False)
         return model

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.logger import KVWriter
 
 
 class ChainEnv(gym.Env):
@@ -98,3 +99,13 @@ def load_script(name: str, relpath: str):
     sys.modules[name] = module  # as an import does (dataclasses look their module up there)
     spec.loader.exec_module(module)
     return module
+
+
+class Capture(KVWriter):
+    """A logger output that keeps every dump's key-values (``Logger(folder=None, output_formats=[Capture()])``)."""
+
+    def __init__(self):
+        self.records = []
+
+    def write(self, key_values, key_excluded, step=0):
+        self.records.append(dict(key_values))

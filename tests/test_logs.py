@@ -7,19 +7,11 @@ import time
 
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.logger import KVWriter, Logger
+from stable_baselines3.common.logger import Logger
 
 import sb3_gocu  # noqa: F401
-from conftest import TINY_IMAGE_CURIOSITY
+from conftest import Capture, TINY_IMAGE_CURIOSITY
 from sb3_gocu import PPO_GoCu
-
-
-class Capture(KVWriter):
-    def __init__(self):
-        self.records = []
-
-    def write(self, key_values, key_excluded, step=0):
-        self.records.append(dict(key_values))
 
 
 class Episodes(BaseCallback):

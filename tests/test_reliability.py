@@ -18,7 +18,7 @@ from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.logger import KVWriter, Logger
+from stable_baselines3.common.logger import Logger
 
 from sb3_gocu import GoalCuriosityModule, GoCuVecEnvWrapper, GoCuWrapper, PPO_GoCu
 from sb3_gocu.checkpoints import (
@@ -34,7 +34,7 @@ from sb3_gocu.curiosity.networks import FoldedPredictor, MasteryPredictor
 from sb3_gocu.curiosity.stores import observation_key
 from sb3_gocu.curiosity.training import nonfinite_entries
 
-from conftest import SMALL_CURIOSITY, ChainEnv
+from conftest import Capture, SMALL_CURIOSITY, ChainEnv
 
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 
@@ -261,14 +261,6 @@ def test_ppo_gocu_trains_on_images(layout, dtype):
 
 
 # ============================================================================================ 2. non-finite values
-class Capture(KVWriter):
-    def __init__(self):
-        self.records = []
-
-    def write(self, key_values, key_excluded, step=0):
-        self.records.append(dict(key_values))
-
-
 def test_nan_rewards_and_losses_never_reach_the_rollout_buffer(monkeypatch):
     nan_mastery = lambda self, state_part, goal_part: th.full(goal_part.shape[:2], float("nan"))  # noqa: E731
     nan_logits = lambda self, phi_s, phi_g: th.full((len(phi_s), 2), float("nan"), requires_grad=True)  # noqa: E731

@@ -38,7 +38,7 @@ def _decompressed(entry: dict[str, Any]) -> np.ndarray:
 
 def _table(arrays: list[np.ndarray], row_shape: tuple[int, ...]) -> tuple[dict[str, Any], list[th.Tensor]]:
     """The distinct rows of ``arrays`` (each of rows of ``row_shape``) compressed, and each array as row indices."""
-    rows = np.concatenate([a.reshape(-1, *row_shape) for a in arrays]) if arrays else np.zeros((0, *row_shape))
+    rows = np.concatenate([a.reshape(-1, *row_shape) for a in arrays])
     first, inverse = distinct_rows(rows)
     bounds = np.cumsum([0] + [int(np.prod(a.shape[: a.ndim - len(row_shape)])) for a in arrays])
     indices = [th.from_numpy(inverse[lo:hi].astype(np.int32).reshape(a.shape[: a.ndim - len(row_shape)]))

@@ -104,9 +104,9 @@ def summary(args: argparse.Namespace) -> str:
         "| arm | " + " | ".join(f"seed {s}" for s in seeds) + " | solved | steps summed | against the defaults |",
         "| --- |" + " --- |" * (len(seeds) + 3),
     ]
-    base = None
+    base: dict[int, int] = {}  # the defaults' steps (a miss at the budget) per finished seed
     for name, runs in data.items():
-        cells, total, solved, finished, complete = [], 0, 0, 0, True
+        cells, counted, solved, complete = [], {}, 0, True
         for s in seeds:
             if s not in runs:
                 cells.append("-")
@@ -118,14 +118,19 @@ def summary(args: argparse.Namespace) -> str:
                 complete = False
                 continue
             solved += reached is not None
-            finished += 1
-            total += budget if reached is None else reached
+            counted[s] = budget if reached is None else reached
             cells.append(f"{reached:,}" if reached is not None else "not")
+        total = sum(counted.values())
         summed = f"{total:,}" if complete else f"({total:,} so far)"
-        if name == "defaults" and complete:
-            base = total
-        ratio = f"{(total / base - 1) * 100:+.1f}% steps" if base and complete and name != "defaults" else ""
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {solved} of {finished} | {summed} | {ratio} |")
+        if name == "defaults":
+            base = counted
+        shared = [s for s in counted if s in base]
+        ratio = ""
+        if name != "defaults" and shared:  # on the seeds both have finished
+            ratio = f"{(sum(counted[s] for s in shared) / sum(base[s] for s in shared) - 1) * 100:+.1f}% steps"
+            if not complete or len(shared) < len(seeds):
+                ratio += " on seed" + ("s " if len(shared) > 1 else " ") + ", ".join(map(str, shared))
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {solved} of {len(counted)} | {summed} | {ratio} |")
     text = "\n".join(
         [
             f"# Ablations: {args.env}, {budget:,} steps",
@@ -133,7 +138,8 @@ def summary(args: argparse.Namespace) -> str:
             *lines,
             "",
             f"Steps to a mean return of 0.9 over the last 100 episodes (first rollout end; \"not\": not within {budget:,}, "
-            "counted as the budget in the sum). Every run stops once it reaches 0.9. Defaults: "
+            "counted as the budget in the sum; against the defaults: on the seeds both have finished). Every run stops once it "
+            "reaches 0.9. Defaults: "
             f"`{args.defaults}`. Runs: `python benchmarks/ablations.py run --env {args.env} --timesteps {budget} ...`.",
             f"Machine: {se.machine_line(1)}.",
             "",

@@ -478,7 +478,8 @@ def test_constant_curiosity_pays_one_value(se, tmp_path):
 
 
 def test_ablations_summary_counts_a_miss_at_the_budget(tmp_path):
-    """benchmarks/ablations.py summary: steps to 0.9 per seed, a miss counted as the budget, running seeds marked."""
+    """benchmarks/ablations.py summary: steps to 0.9 per seed, a miss counted as the budget, running seeds marked, a
+    partial arm compared with the defaults on the seeds both have finished."""
     ablations = load_script("ablations", "benchmarks/ablations.py")
     se_mod = ablations.se
 
@@ -495,9 +496,12 @@ def test_ablations_summary_counts_a_miss_at_the_budget(tmp_path):
     write(out / "predictor_untrained", "ppo_gocu", 0, [0.1, 0.2, 0.91])   # 3,000
     write(out / "predictor_untrained", "ppo_gocu", 1, [0.1, 0.2, 0.95])   # 3,000
     write(out / "one_value_head", "ppo_sum", 0, [0.1])     # running: 1,000 of 3,000
+    write(out / "vae_untrained", "ppo_gocu", 0, [0.1, 0.2, 0.3])          # not within 3,000: counted 3,000
+    write(out / "vae_untrained", "ppo_gocu", 1, [0.1])                    # running
     text = ablations.main(["summary", "--out", str(out), "--timesteps", "3000", "--defaults", str(defaults)]) or (out / "summary.md").read_text()
     lines = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ") and "---" not in line}
     assert "| 2,000 | not | 1 of 2 | 5,000 |" in lines["defaults"]
     assert "| 3,000 | 3,000 | 2 of 2 | 6,000 | +20.0% steps |" in lines["predictor_untrained"]
     assert "running (1,000)" in lines["one_value_head"] and "(0 so far)" in lines["one_value_head"]
+    assert "| 0 of 1 | (3,000 so far) | +50.0% steps on seed 0 |" in lines["vae_untrained"]  # against the defaults' 2,000 on seed 0
     assert (out / "curves.png").stat().st_size > 0

@@ -7,7 +7,8 @@ the rollout buffer. A refactor of the curiosity core that keeps the defaults' ar
 change that moves any value by one bit does not.
 
 Float sums take other paths on other CPUs, so the hashes are recorded per CPU model (``/proc/cpuinfo``'s model
-name); on a CPU with none recorded the test is skipped, saying so. To record them for a new CPU model, run
+name, with the widest vector instructions it offers: a virtual machine may name two generations alike); on a CPU with
+none recorded the test is skipped, saying so. To record them for a new CPU model, run
 ``python tests/test_bit_identical.py`` at a commit whose defaults are the reference, and add its output below.
 """
 
@@ -27,20 +28,28 @@ STEPS, SEED, N_ENVS = 61_440, 0, 16
 
 #: CPU model name -> {"policy", "vae", "predictor", "rewards"}: SHA-256 prefixes of the reference run
 RECORDED: dict[str, dict[str, str]] = {
-    "AMD EPYC": {"policy": "c27791ee2dfe8754", "vae": "6c2afa5e5392d95a", "predictor": "1401f0cfe1507de4", "rewards": "58d5947bf24e93a0"},
+    "AMD EPYC (AVX2)": {"policy": "c27791ee2dfe8754", "vae": "6c2afa5e5392d95a", "predictor": "1401f0cfe1507de4", "rewards": "58d5947bf24e93a0"},
+    "AMD EPYC (AVX-512)": {"policy": "1a0706c2a8dfbaf4", "vae": "038b48bb11561446", "predictor": "dd638d009b39bdd2", "rewards": "7d7c700ddac25b43"},
 }
 
 
 def cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo``), else the platform's processor string."""
+    """The CPU's model name (``/proc/cpuinfo``) and its widest vector extension ("AVX-512", "AVX2" or none), else
+    the platform's processor string."""
+    name, flags = None, set()
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
+                if line.startswith("model name") and name is None:
+                    name = line.split(":", 1)[1].strip()
+                elif line.startswith("flags") and not flags:
+                    flags = set(line.split(":", 1)[1].split())
     except OSError:
         pass
-    return platform.processor() or platform.machine()
+    if name is None:
+        return platform.processor() or platform.machine()
+    simd = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else None
+    return f"{name} ({simd})" if simd else name
 
 
 def digest(*arrays) -> str:

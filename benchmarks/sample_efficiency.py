@@ -21,7 +21,7 @@ Runs execute one at a time (seed-major: seed 0 of every algo, then seed 1, ...),
   the agent picked up the key / opened the door, a measure of exploration that moves before the return does;
 * ``intrinsic_mean`` / ``intrinsic_std``: mean and std of the raw r_gc (eq 13, ``infos["gocu_raw_reward"]``)
   over the rollout's steps, ``intrinsic_norm_mean``: mean of the normalised r_gc (eq 14), ``goals``: goals in the
-  goal buffer; empty for PPO;
+  goal buffer; empty for PPO; for ppo_rnd the intrinsic columns are RND's raw and normalised reward;
 * ``wall_time_s``: training wall time of the run so far (summed over resumed sessions; the time between
   the last checkpoint and a crash is not counted, those steps are redone); ``fps``: steps/s of that rollout.
 
@@ -83,9 +83,13 @@ from sb3_gocu.curiosity.goals import GOAL_STRATEGIES
 from sb3_gocu.checkpoints import atomic_write
 from sb3_gocu.wrappers import find_gocu_module
 
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from peers.rnd import PPO_RND  # noqa: E402
+
 #: ppo: plain PPO; ppo_gocu: PPO_GoCu (two value heads); ppo_sum: plain PPO (one value head) on
-#: ``GoCuVecEnvWrapper(mode="sum")`` with ``GoCuCallback``, the drop-in pipeline
-ALGOS = ("ppo", "ppo_gocu", "ppo_sum")
+#: ``GoCuVecEnvWrapper(mode="sum")`` with ``GoCuCallback``, the drop-in pipeline; ppo_rnd: PPO_GoCu's PPO with RND
+#: as its intrinsic reward (``benchmarks/peers/rnd.py``)
+ALGOS = ("ppo", "ppo_gocu", "ppo_sum", "ppo_rnd")
 CURIOUS = ("ppo_gocu", "ppo_sum")
 PPO_SETTINGS: dict[str, Any] = dict(PAPER_PPO_KWARGS)  # both algorithms get them explicitly
 N_ENVS = PAPER_N_ENVS
@@ -185,7 +189,7 @@ class SampleEfficiencyCallback(BaseCallback):
     def _on_rollout_end(self) -> None:
         for infos in self._infos:
             for info in infos:
-                raw = info.get("gocu_raw_reward")
+                raw = info.get("gocu_raw_reward", info.get("rnd_raw_reward"))
                 if raw is not None:
                     self._sum += raw
                     self._sq += raw * raw
@@ -381,6 +385,8 @@ class Run:
         ppo = ppo_settings(a)
         if self.algo in ("ppo", "ppo_sum"):
             return PPO("CnnPolicy", self.make_env(self.seed), seed=self.seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **ppo)
+        if self.algo == "ppo_rnd":
+            return PPO_RND("CnnPolicy", self.make_env(self.seed), seed=self.seed, verbose=0, **ppo)
         return PPO_GoCu(
             "CnnPolicy", self.make_env(self.seed), seed=self.seed, intrinsic_coef=a.intrinsic_coef,
             curiosity_kwargs=curiosity_kwargs(a), verbose=0, **ppo,
@@ -405,7 +411,7 @@ class Run:
                 print(f"[{self.name}] already at {steps} >= {self.args.timesteps} steps: skipped")
                 atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
                 return
-            cls = PPO_GoCu if self.algo == "ppo_gocu" else PPO
+            cls = {"ppo_gocu": PPO_GoCu, "ppo_rnd": PPO_RND}.get(self.algo, PPO)
             module_state = None
             if self.algo == "ppo_sum":
                 module_state = th.load(self.ckpt_dir / f"curiosity_{steps}.pth", weights_only=True)
@@ -423,7 +429,7 @@ class Run:
             print(f"[{self.name}] new run: {self.args.env}, {self.args.timesteps} steps", flush=True)
         self.session_start = time.perf_counter()
         if self.args.constant_curiosity:
-            hold_curiosity_constant(self.module(model))
+            replace_curiosity(self.module(model), "constant")
         model.learn(remaining, callback=self.callbacks(), reset_num_timesteps=reset)
         if self.stopped_at_threshold is None:
             self.done = True
@@ -434,29 +440,42 @@ class Run:
         model.env.close()
 
 
-def hold_curiosity_constant(module: GoalCuriosityModule | None) -> None:
-    """Ablation, not a library setting (``--constant-curiosity``): every state's r_gc is replaced by the running
-    mean of the r_gc the module computed so far (over the visits the revisit rule pays), so what remains of the
-    curiosity is the revisit rule and the normalisation. The module computes and trains as before; the
-    ``gocu_raw_reward`` a step reports is the constant times the revisit factor. The running mean lives in this
-    process: a resumed run starts it afresh."""
+#: how ``replace_curiosity`` replaces r_gc (ablations and the learning test's broken variants; not library settings)
+REPLACEMENTS = ("constant", "zero", "negative")
+
+
+def replace_curiosity(module: GoalCuriosityModule | None, how: str) -> None:
+    """Ablation, not a library setting: every state's r_gc, as the module commits it, replaced by ``how``:
+    ``"constant"`` the running mean of the r_gc the module computed so far (over the visits the revisit rule pays),
+    so what remains of the curiosity is the revisit rule and the normalisation (``--constant-curiosity``);
+    ``"zero"``; ``"negative"`` its negative. The module computes and trains as before; the ``gocu_raw_reward`` a step
+    reports is the replacement times the revisit factor. The running mean lives in this process: a resumed run
+    starts it afresh."""
+    if how not in REPLACEMENTS:
+        raise ValueError(f"how must be one of {REPLACEMENTS}, got {how!r}")
     if module is None:
-        raise SystemExit("--constant-curiosity applies to ppo_gocu and ppo_sum")
+        raise SystemExit("replacing r_gc applies to ppo_gocu and ppo_sum")
     take = module.scorer.take
     sums = [0.0, 0.0]  # sum of the paid r_gc, visits paid
 
-    def take_constant(ticket: Any) -> None:
+    def take_replaced(ticket: Any) -> None:
         take(ticket)
         rewards = ticket.rewards.astype(np.float64)
+        if how == "zero":  # new arrays: the episode memos keep the true values
+            ticket.rewards = np.zeros_like(ticket.rewards)
+            return
+        if how == "negative":
+            ticket.rewards = -ticket.rewards
+            return
         paid = np.ones(len(rewards)) if ticket.factor is None else ticket.factor.astype(np.float64)
         finite = np.isfinite(rewards)
         if ticket.recording:
             sums[0] += float((rewards * paid)[finite].sum())
             sums[1] += float(paid[finite].sum())
         mean = sums[0] / sums[1] if sums[1] > 0 else float(np.mean(rewards[finite])) if finite.any() else 0.0
-        ticket.rewards = np.full(len(rewards), mean, dtype=np.float32)  # a new array: the episode memos keep the true values
+        ticket.rewards = np.full(len(rewards), mean, dtype=np.float32)
 
-    module.scorer.take = take_constant
+    module.scorer.take = take_replaced
 
 
 def model_readable(path: pathlib.Path) -> bool:

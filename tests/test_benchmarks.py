@@ -444,15 +444,31 @@ def test_ppo_sum_resumes_with_its_module(se, tmp_path):
     assert sorted(p.name for p in ckpt.glob("curiosity_*.pth")) == ["curiosity_2048.pth", "curiosity_3072.pth"]
 
 
+def test_ppo_rnd_runs_and_resumes_with_its_rnd_state(se, tmp_path):
+    """ppo_rnd (the RND peer, benchmarks/peers/rnd.py): its intrinsic columns are RND's, and a resumed run continues
+    from the checkpoint's RND statistics and predictor."""
+    th.set_num_threads(1)
+    out = tmp_path / "rnd"
+    se.main(tiny_args(out, 2048, "--algos", "ppo_rnd"))
+    rows = read(out / "ppo_rnd_seed0.csv")
+    assert [int(r["steps"]) for r in rows][-1] == 2048
+    assert all(float(r["intrinsic_mean"]) > 0 and float(r["intrinsic_norm_mean"]) > 0 and r["goals"] == "" for r in rows)
+    model = se.PPO_RND.load(out / "checkpoints" / "ppo_rnd_seed0" / "model_2048.zip")
+    assert model.rnd.obs_stats.count.item() == 2048  # every reached state updated the observation statistics
+    se.main(tiny_args(out, 3072, "--algos", "ppo_rnd"))
+    rows = read(out / "ppo_rnd_seed0.csv")
+    assert [int(r["steps"]) for r in rows][-1] == 3072 and len(rows) == 6
+
+
 def test_constant_curiosity_pays_one_value(se, tmp_path):
     """--constant-curiosity: every paid r_gc of a rollout is one value (the running mean), unpaid revisits 0."""
     th.set_num_threads(1)
     out = tmp_path / "constant"
     seen = []
-    original = se.hold_curiosity_constant
+    original = se.replace_curiosity
 
-    def spy(module):
-        original(module)
+    def spy(module, how):
+        original(module, how)
         take = module.scorer.take
 
         def recording_take(ticket):
@@ -461,11 +477,11 @@ def test_constant_curiosity_pays_one_value(se, tmp_path):
 
         module.scorer.take = recording_take
 
-    se.hold_curiosity_constant = spy
+    se.replace_curiosity = spy
     try:
         se.main(tiny_args(out, 1024, "--algos", "ppo_gocu", "--constant-curiosity"))
     finally:
-        se.hold_curiosity_constant = original
+        se.replace_curiosity = original
     assert len(seen) > 100
     assert all(len(np.unique(r)) == 1 for r in seen)  # one value per batch
     values = np.array([r[0] for r in seen])
@@ -475,6 +491,43 @@ def test_constant_curiosity_pays_one_value(se, tmp_path):
     assert config["constant_curiosity"] is True and rows
     with pytest.raises(SystemExit, match="other settings"):  # a constant run is not resumed as a normal one
         se.main(tiny_args(out, 2048, "--algos", "ppo_gocu"))
+
+
+@pytest.mark.parametrize("how", ["zero", "negative"])
+def test_replace_curiosity_zero_and_negative(se, how):
+    """replace_curiosity (the learning test's broken variants): every committed r_gc is 0, or the negative of what
+    the module computed (the episode memos keep the true values, so a revisit's reward is negated once, not twice)."""
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_gocu import PPO_GoCu
+
+    th.set_num_threads(1)
+    model = PPO_GoCu("CnnPolicy", make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=4, seed=0), n_steps=128, seed=0, curiosity_kwargs=TINY_IMAGE_CURIOSITY)
+    scorer = model.curiosity.scorer
+    true, seen = [], []
+    take = scorer.take
+
+    def recording_take(ticket):
+        take(ticket)
+        true.append(ticket.rewards.copy())
+
+    scorer.take = recording_take
+    se.replace_curiosity(model.curiosity, how)
+    replaced = scorer.take
+
+    def recording_replaced(ticket):
+        replaced(ticket)
+        seen.append(ticket.rewards.copy())
+
+    scorer.take = recording_replaced
+    model.learn(1024)
+    assert len(seen) > 100 and len(seen) == len(true)
+    true_all, seen_all = np.concatenate(true), np.concatenate(seen)
+    assert np.any(true_all > 0)  # the module computed rewards that vary
+    expected = np.zeros_like(true_all) if how == "zero" else -true_all
+    np.testing.assert_array_equal(seen_all, expected)
+    with pytest.raises(ValueError, match="how must be one of"):
+        se.replace_curiosity(model.curiosity, "noise")
 
 
 def test_ablations_summary_counts_a_miss_at_the_budget(tmp_path):

@@ -1,46 +1,98 @@
-"""End to end: PPO_GoCu learns DoorKey-5x5 (32x32 RGB partial view) with the paper's hyperparameters.
+"""End to end: PPO_GoCu solves DoorKey-8x8 (32x32 RGB partial view) on a seed and budget where plain PPO does not.
 
-Fixed seed and a step budget; training stops as soon as the mean extrinsic return of the last 100
-episodes reaches 0.9, and the test asserts that this happens within 300,000 steps.
+Fixed seed, the defaults (16 envs, one torch thread): training stops at the first rollout end where the mean
+extrinsic return of the last 100 episodes is 0.9 or more, as ``benchmarks/sample_efficiency.py`` counts it, and the
+test asserts that this happens within 700,000 steps. Seed 6 is the seed the defaults solved with the widest margin on
+both CPU models measured (``benchmarks/sample_efficiency.py --env GoCu/DoorKey-8x8-v0 --seeds 6``); docs/results.md,
+"Does the learning test catch a broken curiosity?", has the commands and logs:
+
+* the defaults reach 0.9 at 548,864 steps on an AMD EPYC (AVX-512) and 555,008 on an Intel Xeon (the budget is 28% and
+  26% more);
+* plain PPO with the same settings: best 100-episode mean 0.017 (AMD EPYC) and 0.034 (Intel Xeon) within 800,768;
+* r_gc replaced by zero, by its negative, or by its running mean (``python tests/test_learning.py --replace
+  zero|negative|constant``): none reaches 0.9 within the budget (the running mean reaches it at 737,280).
+
+So the test fails when the curiosity stops rewarding what it should, not only when it is exactly zero.
 """
+
+from __future__ import annotations
+
+import argparse
+import sys
 
 import numpy as np
 import pytest
+import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_gocu import PPO_GoCu
 
-TARGET, WINDOW, BUDGET, SEED = 0.9, 100, 300_000, 0
+ENV, TARGET, WINDOW, BUDGET, SEED, N_ENVS = "GoCu/DoorKey-8x8-v0", 0.9, 100, 700_000, 6, 16
 
 
 class StopAtMeanReturn(BaseCallback):
-    """Stops training once the last ``WINDOW`` episodes' mean extrinsic return reaches ``TARGET``."""
+    """Stops training at the first rollout end where the last ``WINDOW`` episodes' mean extrinsic return reaches
+    ``TARGET`` (the update on that rollout is made first, as in ``benchmarks/sample_efficiency.py``)."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__()
         self.returns: list[float] = []
         self.reached_at: int | None = None
+        self.best = float("-inf")
 
     def _on_step(self) -> bool:
         for info in self.locals["infos"]:
             if "episode" in info:
-                self.returns.append(info["episode"]["r"])
-        if len(self.returns) >= WINDOW and np.mean(self.returns[-WINDOW:]) >= TARGET:
-            self.reached_at = self.num_timesteps
-            return False
-        return True
+                self.returns.append(float(info["episode"]["r"]))
+        return self.reached_at is None or self.num_timesteps <= self.reached_at
+
+    def _on_rollout_end(self) -> None:
+        if len(self.returns) >= WINDOW and self.reached_at is None:
+            mean = float(np.mean(self.returns[-WINDOW:]))
+            self.best = max(self.best, mean)
+            if mean >= TARGET:
+                self.reached_at = self.num_timesteps
+
+
+def train(replace: str | None = None, budget: int = BUDGET) -> tuple[PPO_GoCu, StopAtMeanReturn]:
+    """The test's run; ``replace`` breaks the curiosity on purpose (``sample_efficiency.replace_curiosity``)."""
+    threads = th.get_num_threads()
+    th.set_num_threads(1)
+    try:
+        model = PPO_GoCu("CnnPolicy", make_vec_env(ENV, n_envs=N_ENVS, seed=SEED), seed=SEED)
+        if replace is not None:
+            from conftest import load_script
+
+            load_script("sample_efficiency", "benchmarks/sample_efficiency.py").replace_curiosity(model.curiosity, replace)
+        stop = StopAtMeanReturn()
+        model.learn(budget, callback=stop)
+        model.env.close()
+        return model, stop
+    finally:
+        th.set_num_threads(threads)
 
 
 @pytest.mark.slow
-def test_ppo_gocu_solves_doorkey_5x5_within_budget():
-    env = make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=16, seed=SEED)
-    model = PPO_GoCu("CnnPolicy", env, seed=SEED)  # the defaults: the paper's settings but the measured departures
-    stop = StopAtMeanReturn()
-    model.learn(BUDGET, callback=stop)
+def test_ppo_gocu_solves_doorkey_8x8_where_plain_ppo_does_not():
+    model, stop = train()
     print(f"mean return of the last {WINDOW} episodes reached {TARGET} at {stop.reached_at} steps")
-    assert stop.reached_at is not None, f"mean return of the last {WINDOW} episodes: {np.mean(stop.returns[-WINDOW:]):.3f} after {BUDGET} steps"
+    assert stop.reached_at is not None, f"best {WINDOW}-episode mean return {stop.best:.3f} within {BUDGET} steps"
     assert stop.reached_at <= BUDGET
     # the curiosity module really took part: pretrained, goals collected, predictor trained
     assert model.curiosity.pretrained and model.curiosity.goal_buffer.size > 50
     assert model.curiosity.last_predictor_update > 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description="The learning test's run, optionally with r_gc replaced (broken on purpose)")
+    parser.add_argument("--replace", choices=["zero", "negative", "constant"], default=None, help="what r_gc is replaced by")
+    parser.add_argument("--budget", type=int, default=BUDGET, help="env steps")
+    args = parser.parse_args()
+    from test_bit_identical import cpu_model
+
+    print(f"$ python tests/test_learning.py {' '.join(sys.argv[1:])}".rstrip())
+    print(f"machine: {cpu_model()}, torch {th.__version__}, 1 torch thread")
+    model, stop = train(args.replace, args.budget)
+    print(f"replace={args.replace} seed={SEED} budget={args.budget}: reached {TARGET} at {stop.reached_at} steps; "
+          f"best {WINDOW}-episode mean return {stop.best:.3f}; episodes {len(stop.returns)}; steps {model.num_timesteps}")

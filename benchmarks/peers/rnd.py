@@ -12,8 +12,9 @@ of gymnasium and torch, so RND is written here, after CleanRL's ``ppo_rnd_envpoo
   ``batch_size``; Burda et al. train on a quarter of 128 envs' samples, that is 32 envs' worth: with 16 envs all
   samples are used).
 
-The observation statistics start from the first observations and update every step (CleanRL first plays a random
-policy to fill them; this peer pays no such steps, where PPO_GoCu's pretraining is 10,000). The intrinsic stream is
+The observation and return statistics update at every step, before the step is scored (CleanRL updates them once
+per rollout, and first plays a random policy to fill the observation statistics; this peer pays no such steps, where
+PPO_GoCu's pretraining is 10,000). The networks keep PyTorch's default initialisation (CleanRL: orthogonal). The intrinsic stream is
 non-episodic and its advantage weighs ``intrinsic_coef=0.5`` against the extrinsic one (Burda et al.: 2 and 1).
 """
 

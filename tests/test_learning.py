@@ -8,7 +8,9 @@ both CPU models measured (``benchmarks/sample_efficiency.py --env GoCu/DoorKey-8
 
 * the defaults reach 0.9 at 548,864 steps on an AMD EPYC (AVX-512) and 555,008 on an Intel Xeon (the budget is 28% and
   26% more);
-* plain PPO with the same settings: best 100-episode mean 0.017 (AMD EPYC) and 0.034 (Intel Xeon) within 800,768;
+* plain PPO with the same settings: best 100-episode mean 0.017 (AMD EPYC) and 0.034 (Intel Xeon) within 800,768
+  steps (``benchmarks/results/doorkey8x8_time_to_solve_seeds3to6/ppo_seed6.csv``,
+  ``benchmarks/results/doorkey8x8_machine3/ppo_seed6.csv``);
 * r_gc replaced by zero, by its negative, or by its running mean (``python tests/test_learning.py --replace
   zero|negative|constant``): none reaches 0.9 within the budget (the running mean reaches it at 737,280).
 
@@ -94,5 +96,5 @@ if __name__ == "__main__":
     print(f"$ python tests/test_learning.py {' '.join(sys.argv[1:])}".rstrip())
     print(f"machine: {cpu_model()}, torch {th.__version__}, 1 torch thread")
     model, stop = train(args.replace, args.budget)
-    print(f"replace={args.replace} seed={SEED} budget={args.budget}: reached {TARGET} at {stop.reached_at} steps; "
+    print(f"replace={args.replace} seed={SEED} budget={args.budget}: reached {TARGET} at {stop.reached_at or 'no'} steps; "
           f"best {WINDOW}-episode mean return {stop.best:.3f}; episodes {len(stop.returns)}; steps {model.num_timesteps}")

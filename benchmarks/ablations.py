@@ -88,7 +88,8 @@ def arms(out: pathlib.Path, defaults: pathlib.Path | None) -> dict[str, dict[int
     found: dict[str, dict[int, list[dict[str, Any]]]] = {}
     folders = ([("defaults", defaults)] if defaults else []) + [(v, out / v) for v in VARIANTS]
     for name, folder in folders:
-        for path in sorted(folder.glob("*_seed*.csv")):
+        # the defaults' folder may hold plain PPO's runs beside PPO_GoCu's; a variant's folder holds one algorithm's
+        for path in sorted(folder.glob("ppo_gocu_seed*.csv" if name == "defaults" else "*_seed*.csv")):
             seed = int(path.stem.rsplit("_seed", 1)[1])
             rows = se.read_csv(path)
             if rows:

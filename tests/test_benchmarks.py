@@ -546,6 +546,7 @@ def test_ablations_summary_counts_a_miss_at_the_budget(tmp_path):
     defaults, out = tmp_path / "defaults", tmp_path / "out"
     write(defaults, "ppo_gocu", 0, [0.1, 0.95])           # 2,000
     write(defaults, "ppo_gocu", 1, [0.1, 0.2, 0.3])        # not within 3,000
+    write(defaults, "ppo", 0, [0.1, 0.2, 0.3])             # plain PPO beside the defaults: not an arm, not read
     write(out / "predictor_untrained", "ppo_gocu", 0, [0.1, 0.2, 0.91])   # 3,000
     write(out / "predictor_untrained", "ppo_gocu", 1, [0.1, 0.2, 0.95])   # 3,000
     write(out / "one_value_head", "ppo_sum", 0, [0.1])     # running: 1,000 of 3,000

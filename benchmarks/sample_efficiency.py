@@ -460,13 +460,13 @@ def replace_curiosity(module: GoalCuriosityModule | None, how: str) -> None:
 
     def take_replaced(ticket: Any) -> None:
         take(ticket)
-        rewards = ticket.rewards.astype(np.float64)
         if how == "zero":  # new arrays: the episode memos keep the true values
             ticket.rewards = np.zeros_like(ticket.rewards)
             return
         if how == "negative":
             ticket.rewards = -ticket.rewards
             return
+        rewards = ticket.rewards.astype(np.float64)
         paid = np.ones(len(rewards)) if ticket.factor is None else ticket.factor.astype(np.float64)
         finite = np.isfinite(rewards)
         if ticket.recording:

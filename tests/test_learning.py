@@ -57,16 +57,21 @@ class StopAtMeanReturn(BaseCallback):
                 self.reached_at = self.num_timesteps
 
 
+def benchmark_script():
+    """``benchmarks/sample_efficiency.py``, whose ``replace_curiosity`` breaks the curiosity on purpose."""
+    from conftest import load_script
+
+    return load_script("sample_efficiency", "benchmarks/sample_efficiency.py")
+
+
 def train(replace: str | None = None, budget: int = BUDGET) -> tuple[PPO_GoCu, StopAtMeanReturn]:
-    """The test's run; ``replace`` breaks the curiosity on purpose (``sample_efficiency.replace_curiosity``)."""
+    """The test's run; ``replace`` breaks the curiosity on purpose (``sample_efficiency.REPLACEMENTS``)."""
     threads = th.get_num_threads()
     th.set_num_threads(1)
     try:
         model = PPO_GoCu("CnnPolicy", make_vec_env(ENV, n_envs=N_ENVS, seed=SEED), seed=SEED)
         if replace is not None:
-            from conftest import load_script
-
-            load_script("sample_efficiency", "benchmarks/sample_efficiency.py").replace_curiosity(model.curiosity, replace)
+            benchmark_script().replace_curiosity(model.curiosity, replace)
         stop = StopAtMeanReturn()
         model.learn(budget, callback=stop)
         model.env.close()
@@ -88,7 +93,7 @@ def test_ppo_gocu_solves_doorkey_8x8_where_plain_ppo_does_not():
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="The learning test's run, optionally with r_gc replaced (broken on purpose)")
-    parser.add_argument("--replace", choices=["zero", "negative", "constant"], default=None, help="what r_gc is replaced by")
+    parser.add_argument("--replace", choices=benchmark_script().REPLACEMENTS, default=None, help="what r_gc is replaced by")
     parser.add_argument("--budget", type=int, default=BUDGET, help="env steps")
     args = parser.parse_args()
     from test_bit_identical import cpu_model

@@ -133,7 +133,7 @@ class RND(nn.Module):
         self.optimizer = th.optim.Adam(self.predictor.parameters(), lr=learning_rate)
         self.rollout: list[th.Tensor] = []  # normalised observations reached since the last update
 
-    def normalize(self, obs: np.ndarray) -> th.Tensor:
+    def normalize(self, obs: np.ndarray | th.Tensor) -> th.Tensor:
         """The observation as the networks see it: per pixel (x - mean) / std, clipped to [-OBS_CLIP, OBS_CLIP]."""
         x = th.as_tensor(obs, device=self.device, dtype=th.float64)
         return ((x - self.obs_stats.mean) / th.sqrt(self.obs_stats.var + 1e-8)).clamp(-OBS_CLIP, OBS_CLIP).float()
@@ -150,8 +150,9 @@ class RND(nn.Module):
         """
         if len(obs) != self.n_envs:
             raise ValueError(f"obs must hold one observation per env ({self.n_envs}), got {len(obs)}")
-        self.obs_stats.update(th.as_tensor(obs, device=self.device))
-        x = self.normalize(obs)
+        pixels = th.as_tensor(obs, device=self.device, dtype=th.float64)
+        self.obs_stats.update(pixels)
+        x = self.normalize(pixels)
         with th.no_grad():
             raw = self.prediction_error(x).to(th.float64)
         self.rollout.append(x)

@@ -8,10 +8,13 @@
 Both algorithms get the paper's PPO settings (16 envs, n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
 gamma 0.99, vf 0.5, clip 0.2) and the paper's CNN (plain PPO: ``features_extractor_class=PaperCNN``;
 PPO_GoCu's CnnPolicy picks it itself). PPO_GoCu uses the module's defaults (the paper's settings) unless
-``--goal-strategy``, ``--n-goals`` or ``--curiosity-kwargs`` say otherwise.
+``--goal-strategy``, ``--n-goals`` or ``--curiosity-kwargs`` say otherwise. The paper's other learners (Fig. 6):
+``a2c`` / ``dqn`` take the settings of ``sb3_gocu/hyperparams/<a2c|dqn>.yml`` for the env (the zoo launcher's files),
+``a2c_sum`` / ``dqn_sum`` the same on ``GoCuVecEnvWrapper(mode="sum")`` with ``GoCuCallback``.
 
 Runs execute one at a time (seed-major: seed 0 of every algo, then seed 1, ...), each writing
-``<out>/<algo>_seed<seed>.csv`` with one row per rollout end:
+``<out>/<algo>_seed<seed>.csv`` with one row per rollout end (A2C's and DQN's rollouts are shorter: one row at the
+first rollout end past each multiple of a PPO rollout's steps, ``--n-envs`` x ``--n-steps``):
 
 * ``steps``: env steps so far (all envs); ``episodes``: episodes finished so far;
 * ``window_episodes``: episodes in the return window (at most ``--window``, 100);
@@ -35,7 +38,8 @@ the paper's settings, 6 MB for PPO). Run the same command again after a crash an
 continues from its newest complete checkpoint (``load(..., env=...)`` + ``learn(..., reset_num_timesteps=False)``)
 and finished runs are skipped; a larger ``--timesteps`` extends finished runs. On resumption the envs are
 fresh (seeded with ``seed + steps``): episodes in progress at the checkpoint are not finished, so the
-continuation is statistically, not bit-for-bit, the uninterrupted run. A checkpoint written with other
+continuation is statistically, not bit-for-bit, the uninterrupted run; a resumed DQN run starts with an empty replay
+buffer (not checkpointed: ~600 MB) and makes no gradient step until it has refilled ``learning_starts`` steps of it. A checkpoint written with other
 settings (env, n_envs, PPO or curiosity settings) is refused; ``--restart`` discards it.
 
 Stopping once solved. With ``--stop-at-threshold`` a run ends at the first rollout end where it reaches the
@@ -72,7 +76,8 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch as th
-from stable_baselines3 import PPO
+import yaml
+from stable_baselines3 import A2C, DQN, PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -88,9 +93,19 @@ from peers.rnd import PPO_RND  # noqa: E402
 
 #: ppo: plain PPO; ppo_gocu: PPO_GoCu (two value heads); ppo_sum: plain PPO (one value head) on
 #: ``GoCuVecEnvWrapper(mode="sum")`` with ``GoCuCallback``, the drop-in pipeline; ppo_rnd: PPO_GoCu's PPO with RND
-#: as its intrinsic reward (``benchmarks/peers/rnd.py``)
-ALGOS = ("ppo", "ppo_gocu", "ppo_sum", "ppo_rnd")
-CURIOUS = ("ppo_gocu", "ppo_sum")
+#: as its intrinsic reward (``benchmarks/peers/rnd.py``); a2c / dqn: plain SB3 A2C / DQN with the settings of
+#: ``sb3_gocu/hyperparams/<a2c|dqn>.yml`` (the paper's Fig. 6); a2c_sum / dqn_sum: the same on the drop-in pipeline
+ALGOS = ("ppo", "ppo_gocu", "ppo_sum", "ppo_rnd", "a2c", "a2c_sum", "dqn", "dqn_sum")
+#: a plain SB3 algorithm on ``GoCuVecEnvWrapper(mode="sum")`` with ``GoCuCallback``
+SUM_ALGOS = ("ppo_sum", "a2c_sum", "dqn_sum")
+CURIOUS = ("ppo_gocu", *SUM_ALGOS)
+MODEL_CLASSES: dict[str, type] = {
+    "ppo": PPO, "ppo_gocu": PPO_GoCu, "ppo_sum": PPO, "ppo_rnd": PPO_RND, "a2c": A2C, "a2c_sum": A2C, "dqn": DQN, "dqn_sum": DQN,
+}
+#: where a2c / dqn read their settings: the zoo launcher's files
+HYPERPARAMS = pathlib.Path(sb3_gocu.__file__).resolve().parent / "hyperparams"
+#: keys of a zoo entry that are the launcher's, not the model's
+ZOO_KEYS = ("n_envs", "n_timesteps", "policy", "vec_env_wrapper", "callback", "env_wrapper", "frame_stack", "normalize")
 PPO_SETTINGS: dict[str, Any] = dict(PAPER_PPO_KWARGS)  # both algorithms get them explicitly
 N_ENVS = PAPER_N_ENVS
 COLUMNS = (
@@ -159,6 +174,11 @@ class SampleEfficiencyCallback(BaseCallback):
         self._t_rollout = time.perf_counter()
         self._steps_rollout = 0
         self._stop = False
+        self._fresh = True  # the next rollout starts a new row's figures
+        self._next_row = 0
+
+    def _on_training_start(self) -> None:
+        self._next_row = (self.num_timesteps // self.run.row_every + 1) * self.run.row_every
 
     def _on_rollout_start(self) -> None:
         run = self.run
@@ -169,11 +189,12 @@ class SampleEfficiencyCallback(BaseCallback):
             return
         if self.num_timesteps - run.last_checkpoint >= run.checkpoint_freq:
             run.checkpoint(self.model)
-        self._sum = self._sq = self._norm = 0.0
-        self._count = 0
-        self._infos = []
-        self._t_rollout = time.perf_counter()
-        self._steps_rollout = self.num_timesteps
+        if self._fresh:
+            self._fresh = False
+            self._sum = self._sq = self._norm = 0.0
+            self._count = 0
+            self._t_rollout = time.perf_counter()
+            self._steps_rollout = self.num_timesteps
 
     def _on_step(self) -> bool:
         if self._stop:
@@ -196,6 +217,10 @@ class SampleEfficiencyCallback(BaseCallback):
                     self._norm += info.get("gocu_reward", float("nan"))
                     self._count += 1
         self._infos = []
+        if self.num_timesteps < self._next_row:  # A2C's and DQN's rollouts are short: one row per PPO rollout's steps
+            return
+        self._next_row = (self.num_timesteps // self.run.row_every + 1) * self.run.row_every
+        self._fresh = True
         if self._count:
             mean = self._sum / self._count
             std = math.sqrt(max(0.0, self._sq / self._count - mean * mean))
@@ -221,6 +246,9 @@ class Run:
         self.csv_path = self.out / f"{self.name}.csv"
         self.ckpt_dir = self.out / "checkpoints" / self.name
         rollout = args.n_envs * args.n_steps
+        #: env steps between CSV rows: a PPO rollout (a row at every rollout end of PPO; at the first rollout end past
+        #: each multiple for A2C's and DQN's shorter rollouts)
+        self.row_every = rollout
         # checkpoints happen at rollout boundaries
         self.checkpoint_freq = max(rollout, int(math.ceil(args.checkpoint_freq / rollout)) * rollout)
         self.config = run_config(args, algo, seed)
@@ -310,7 +338,7 @@ class Run:
         buf = io.BytesIO()
         model.save(buf)
         atomic_write_bytes(self.ckpt_dir / f"model_{steps}.zip", buf.getvalue())
-        if self.algo == "ppo_sum":  # a plain PPO model file does not hold the wrapper's curiosity module
+        if self.algo in SUM_ALGOS:  # a plain SB3 model file does not hold the wrapper's curiosity module
             module_buf = io.BytesIO()
             th.save(self.module(model).state_dict(), module_buf)
             atomic_write_bytes(self.ckpt_dir / f"curiosity_{steps}.pth", module_buf.getvalue())
@@ -338,7 +366,7 @@ class Run:
                 print(f"[{self.name}] skipping unreadable {state_path.name}: {e}")
                 continue
             if not model_readable(model_path) or (
-                self.algo == "ppo_sum" and not (self.ckpt_dir / f"curiosity_{steps}.pth").is_file()
+                self.algo in SUM_ALGOS and not (self.ckpt_dir / f"curiosity_{steps}.pth").is_file()
             ):
                 print(f"[{self.name}] skipping checkpoint {steps}: {model_path.name} is missing or corrupt")
                 continue
@@ -362,10 +390,10 @@ class Run:
 
     # ------------------------------------------------------------ training
     def make_env(self, seed: int, module_state: dict[str, Any] | None = None) -> Any:
-        """The training env; for ppo_sum wrapped in ``GoCuVecEnvWrapper(mode="sum")`` (its module restored from
+        """The training env; for the SUM_ALGOS wrapped in ``GoCuVecEnvWrapper(mode="sum")`` (its module restored from
         ``module_state`` when given)."""
         env = make_vec_env(self.args.env, n_envs=self.args.n_envs, seed=seed)
-        if self.algo != "ppo_sum":
+        if self.algo not in SUM_ALGOS:
             return env
         module = GoalCuriosityModule(env.observation_space, seed=self.seed, **curiosity_kwargs(self.args))
         if module_state is not None:
@@ -387,6 +415,11 @@ class Run:
             return PPO("CnnPolicy", self.make_env(self.seed), seed=self.seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **ppo)
         if self.algo == "ppo_rnd":
             return PPO_RND("CnnPolicy", self.make_env(self.seed), seed=self.seed, verbose=0, **ppo)
+        if self.algo not in ("ppo", "ppo_gocu", "ppo_sum"):  # a2c, dqn (and their _sum)
+            kw = model_settings(a, self.algo)
+            if "policy_kwargs" in kw:  # a string in the zoo's files, evaluated as the zoo evaluates it
+                kw["policy_kwargs"] = eval(kw["policy_kwargs"])
+            return MODEL_CLASSES[self.algo]("CnnPolicy", self.make_env(self.seed), seed=self.seed, verbose=0, **kw)
         return PPO_GoCu(
             "CnnPolicy", self.make_env(self.seed), seed=self.seed, intrinsic_coef=a.intrinsic_coef,
             curiosity_kwargs=curiosity_kwargs(a), verbose=0, **ppo,
@@ -394,7 +427,7 @@ class Run:
 
     def callbacks(self) -> list[BaseCallback]:
         callbacks: list[BaseCallback] = [SampleEfficiencyCallback(self)]
-        if self.algo == "ppo_sum":
+        if self.algo in SUM_ALGOS:
             callbacks.append(GoCuCallback())
         return callbacks
 
@@ -411,15 +444,18 @@ class Run:
                 print(f"[{self.name}] already at {steps} >= {self.args.timesteps} steps: skipped")
                 atomic_write_bytes(self.csv_path, csv_bytes(self.rows))
                 return
-            cls = {"ppo_gocu": PPO_GoCu, "ppo_rnd": PPO_RND}.get(self.algo, PPO)
+            cls = MODEL_CLASSES[self.algo]
             module_state = None
-            if self.algo == "ppo_sum":
+            if self.algo in SUM_ALGOS:
                 module_state = th.load(self.ckpt_dir / f"curiosity_{steps}.pth", weights_only=True)
             model = cls.load(model_path, env=self.make_env(self.seed + steps, module_state), device="cpu")
             self.resumed_from.append(steps)
             self.done = False
             atomic_write_bytes(self.csv_path, csv_bytes(self.rows))  # drop rows written after the checkpoint
             print(f"[{self.name}] resuming from {model_path} ({steps} steps, {self.episodes} episodes)", flush=True)
+            if isinstance(model, DQN):  # the replay buffer (~600 MB) is not checkpointed: refill it before learning on
+                model.learning_starts = steps + int(model_settings(self.args, self.algo).get("learning_starts", 100))
+                print(f"[{self.name}] the replay buffer starts empty: no gradient step before {model.learning_starts} steps", flush=True)
             remaining, reset = self.args.timesteps - steps, False
         else:
             if self.csv_path.exists():
@@ -454,7 +490,7 @@ def replace_curiosity(module: GoalCuriosityModule | None, how: str) -> None:
     if how not in REPLACEMENTS:
         raise ValueError(f"how must be one of {REPLACEMENTS}, got {how!r}")
     if module is None:
-        raise SystemExit("replacing r_gc applies to ppo_gocu and ppo_sum")
+        raise SystemExit(f"replacing r_gc applies to the curious algos {CURIOUS}")
     take = module.scorer.take
     sums = [0.0, 0.0]  # sum of the paid r_gc, visits paid
 
@@ -502,6 +538,23 @@ def ppo_settings(args: argparse.Namespace) -> dict[str, Any]:
     return {**PPO_SETTINGS, "n_steps": args.n_steps, "batch_size": args.batch_size}
 
 
+def zoo_settings(family: str, env: str) -> dict[str, Any]:
+    """The model keywords of ``env``'s entry in ``sb3_gocu/hyperparams/<family>.yml``: the entry less the launcher's
+    own keys, ``policy_kwargs`` left a string. :param family: ``a2c`` or ``dqn``"""
+    entries = yaml.safe_load((HYPERPARAMS / f"{family}.yml").read_text())
+    if env not in entries:
+        raise SystemExit(f"{family}: sb3_gocu/hyperparams/{family}.yml has no entry for {env} (it has {sorted(entries)})")
+    return {k: v for k, v in entries[env].items() if k not in ZOO_KEYS}
+
+
+def model_settings(args: argparse.Namespace, algo: str) -> dict[str, Any]:
+    """The model keywords of a run: PPO's for the ppo algos, the zoo file's (and ``--model-kwargs``) for a2c / dqn."""
+    family = algo.split("_")[0]
+    if family == "ppo":
+        return ppo_settings(args)
+    return {**zoo_settings(family, args.env), **json.loads(args.model_kwargs)}
+
+
 def curiosity_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     kw = dict(json.loads(args.curiosity_kwargs))
     if args.goal_strategy is not None:
@@ -513,7 +566,8 @@ def curiosity_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 def run_config(args: argparse.Namespace, algo: str, seed: int) -> dict[str, Any]:
     """What a checkpoint must agree with to be resumed (the step budget is not part of it: it can grow)."""
-    cfg: dict[str, Any] = {"algo": algo, "seed": seed, "env": args.env, "n_envs": args.n_envs, "ppo": ppo_settings(args), "window": args.window}
+    key = "ppo" if algo.startswith("ppo") else "model"
+    cfg: dict[str, Any] = {"algo": algo, "seed": seed, "env": args.env, "n_envs": args.n_envs, key: model_settings(args, algo), "window": args.window}
     if algo in CURIOUS:
         cfg["curiosity_kwargs"] = curiosity_kwargs(args)
         cfg["intrinsic_coef"] = args.intrinsic_coef
@@ -683,6 +737,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-envs", type=int, default=N_ENVS)
     p.add_argument("--n-steps", type=int, default=PPO_SETTINGS["n_steps"])
     p.add_argument("--batch-size", type=int, default=PPO_SETTINGS["batch_size"])
+    p.add_argument("--model-kwargs", default="{}", help="JSON dict overriding the a2c / dqn settings of their zoo file (for tests)")
     p.add_argument("--print-every", type=int, default=10, help="print a progress line every this many rollouts")
     p.add_argument("--quiet", dest="verbose", action="store_false")
     return p

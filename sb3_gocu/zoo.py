@@ -19,7 +19,8 @@ and returns configured + sampled. Settings that are not sampled (``image_channel
 predictor size, a small ``pretrain_steps`` given on the command line) therefore survive tuning.
 
 Config files: the YAML files live in ONE place, the package's ``sb3_gocu/hyperparams/`` directory
-(``sb3_gocu/hyperparams/ppo_gocu.yml``, ``sb3_gocu/hyperparams/ppo.yml``, ``sb3_gocu/hyperparams/ppo_dropin.yml``),
+(``ppo_gocu.yml``, ``ppo.yml``, ``ppo_dropin.yml``, and for the paper's other learners ``a2c.yml``, ``a2c_dropin.yml``,
+``dqn.yml``, ``dqn_dropin.yml``),
 which ships in the wheel as package data, so the launchers find it however the package is installed; the
 environment variable ``SB3_GOCU_HYPERPARAMS`` names another directory to use instead; see :func:`hyperparams_dir`
 and :func:`default_conf_file`.
@@ -59,7 +60,7 @@ ALGO = "ppo_gocu"
 #: environment variable naming a directory of ``{algo}.yml`` files that replaces the package's ``sb3_gocu/hyperparams/``
 HYPERPARAMS_ENV_VAR = "SB3_GOCU_HYPERPARAMS"
 #: algorithms for which the launchers pick our config file by default
-DEFAULT_CONF_ALGOS = ("ppo_gocu", "ppo")
+DEFAULT_CONF_ALGOS = ("ppo_gocu", "ppo", "a2c", "dqn")
 
 #: names of the GoCu parameters in a trial (each maps to a keyword of GoalCuriosityModule, or to
 #: PPO_GoCu's ``intrinsic_coef``). Symbols of the paper: K, sigma, delta, lambda, a, b, l.
@@ -263,8 +264,8 @@ def default_conf_file(algo: str, env_id: str | None) -> Path | None:
     """Our config file for ``algo``, or None to leave rl-zoo3's default.
 
     For ``ppo_gocu`` (the zoo has no file for it): ``ppo_gocu.yml`` of :func:`hyperparams_dir` whenever it exists.
-    For ``ppo``: its ``ppo.yml`` only if it has an entry for ``env_id``, so ``--algo ppo`` on any other env keeps the
-    zoo's own ``ppo.yml`` (with its ``atari`` fallback).
+    For ``ppo``, ``a2c`` and ``dqn``: its ``{algo}.yml`` only if it has an entry for ``env_id``, so ``--algo ppo`` on
+    any other env keeps the zoo's own ``ppo.yml`` (with its ``atari`` fallback).
     """
     if algo not in DEFAULT_CONF_ALGOS:
         return None

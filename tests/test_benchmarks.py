@@ -444,6 +444,44 @@ def test_ppo_sum_resumes_with_its_module(se, tmp_path):
     assert sorted(p.name for p in ckpt.glob("curiosity_*.pth")) == ["curiosity_2048.pth", "curiosity_3072.pth"]
 
 
+@pytest.mark.parametrize("algo", ["a2c_sum", "dqn_sum"])
+def test_other_learners_run_with_their_zoo_settings_and_resume(se, tmp_path, algo):
+    """a2c_sum / dqn_sum (the paper's Fig. 6): SB3's A2C / DQN with the settings of sb3_gocu/hyperparams/<a2c|dqn>.yml on
+    the sum-mode wrapper; one CSV row per PPO rollout's steps although their rollouts are shorter; a resumed DQN waits
+    for its emptied replay buffer to refill before its next gradient step."""
+    from stable_baselines3 import A2C, DQN
+
+    from sb3_gocu import PaperCNN
+
+    th.set_num_threads(1)
+    out = tmp_path / algo
+    dqn = algo.startswith("dqn")
+    extra = ["--algos", algo, "--model-kwargs", json.dumps({"learning_starts": 256, "buffer_size": 4096} if dqn else {})]
+    se.main(tiny_args(out, 2048, *extra))
+    steps = [int(r["steps"]) for r in read(out / f"{algo}_seed0.csv")]
+    rollout = 4 if dqn else 4 * 5  # n_envs x (train_freq 1 | n_steps 5)
+    # a row at the first rollout end at or past each multiple of 4 x 128 = 512 steps
+    assert steps == [-(-m // rollout) * rollout for m in (512, 1024, 1536, 2048)]
+    rows = read(out / f"{algo}_seed0.csv")
+    assert all(r["intrinsic_mean"] != "" and float(r["goals"]) > 0 for r in rows)  # the wrapper's r_gc and goals
+    ckpt = out / "checkpoints" / f"{algo}_seed0"
+    (last,) = [p for p in ckpt.glob("model_*.zip") if int(p.stem.split("_")[1]) >= 2048]
+    model = (DQN if dqn else A2C).load(last)
+    assert isinstance(model.policy.features_extractor if not dqn else model.q_net.features_extractor, PaperCNN)
+    if dqn:
+        assert (model.gradient_steps, model.batch_size, model.learning_starts) == (4, 32, 256)
+    else:
+        assert (model.n_steps, model.gae_lambda, model.learning_rate) == (5, 0.95, 1e-3)
+    assert th.load(ckpt / f"curiosity_{last.stem.split('_')[1]}.pth", weights_only=True)["counters"]["pretrained"]
+    se.main(tiny_args(out, 3072, *extra))
+    rows = read(out / f"{algo}_seed0.csv")
+    assert int(rows[-1]["steps"]) >= 3072 and len(rows) == 6
+    if dqn:
+        resumed = int(last.stem.split("_")[1])
+        final = max(ckpt.glob("model_*.zip"), key=lambda p: int(p.stem.split("_")[1]))
+        assert DQN.load(final).learning_starts == resumed + 256
+
+
 def test_ppo_rnd_runs_and_resumes_with_its_rnd_state(se, tmp_path):
     """ppo_rnd (the RND peer, benchmarks/peers/rnd.py): its intrinsic columns are RND's, and a resumed run continues
     from the checkpoint's RND statistics and predictor."""

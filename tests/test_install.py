@@ -19,7 +19,7 @@ from sb3_gocu._extras import check_env_extra
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "sb3_gocu"
-CONFIG_FILES = ("ppo_gocu.yml", "ppo.yml", "ppo_dropin.yml")
+CONFIG_FILES = ("ppo_gocu.yml", "ppo.yml", "ppo_dropin.yml", "a2c.yml", "a2c_dropin.yml", "dqn.yml", "dqn_dropin.yml")
 DOORKEY = "GoCu/DoorKey-5x5-v0"
 DOORKEY_DIR = "GoCu-DoorKey-5x5-v0"
 

@@ -99,7 +99,9 @@ def test_default_conf_file():
     assert with_default_conf(["--algo", "ppo", "--env=ALE/Pitfall-v5"])[-2:] == ["--conf-file", ppo]
     # ppo on an id our ppo.yml does not list keeps the zoo's own file
     assert with_default_conf(["--algo", "ppo", "--env", "CartPole-v1"]) == ["--algo", "ppo", "--env", "CartPole-v1"]
-    assert default_conf_file("a2c", DOORKEY) is None
+    assert default_conf_file("a2c", DOORKEY) == HYPERPARAMS / "a2c.yml"
+    assert default_conf_file("dqn", DOORKEY) == HYPERPARAMS / "dqn.yml"
+    assert default_conf_file("a2c", "CartPole-v1") is None and default_conf_file("sac", DOORKEY) is None
     # a given config file wins, long or short flag
     for flag in ("--conf-file", "-conf"):
         argv = ["--algo", "ppo_gocu", "--env", DOORKEY, flag, "x.yml"]
@@ -175,6 +177,46 @@ def test_every_entry_builds_its_model(conf, tmp_path):
                 assert any(isinstance(cb, GoCuCallback) for cb in manager.callbacks)
                 assert module.adapter.input_shape == ((1, 84, 84) if atari else (3, 32, 32))
             assert module.n_goals == (25 if "Visual" in env_id else 50)
+        finally:
+            model.env.close()
+
+
+@pytest.mark.parametrize("algo", ["a2c", "dqn"])
+def test_other_learners_files_build_plain_and_dropin(algo, tmp_path):
+    """a2c.yml / dqn.yml (the paper's Fig. 6) build SB3's A2C / DQN on the paper's CNN; their _dropin files hold the
+    same settings plus the sum-mode wrapper and the GoCu callback."""
+    import torch as th
+    from rl_zoo3.exp_manager import ExperimentManager
+    from stable_baselines3 import A2C, DQN
+
+    from sb3_gocu import GoCuCallback, PaperCNN
+    from sb3_gocu.wrappers import find_gocu_module
+
+    plain = yaml.safe_load((HYPERPARAMS / f"{algo}.yml").read_text())
+    dropin = yaml.safe_load((HYPERPARAMS / f"{algo}_dropin.yml").read_text())
+    assert set(plain) == set(dropin) == {f"GoCu/DoorKey-{n}-v0" for n in ("5x5", "8x8", "11x11", "16x16")}
+    for env_id, entry in dropin.items():
+        (wrapper,) = entry.pop("vec_env_wrapper")
+        assert wrapper == {"sb3_gocu.GoCuVecEnvWrapper": {"mode": "sum", "intrinsic_coef": 0.25}}
+        assert entry.pop("callback") == "sb3_gocu.GoCuCallback" and entry == plain[env_id]
+    assert plain["GoCu/DoorKey-8x8-v0"]["n_timesteps"] == 1e6  # the budget of the paper's Fig. 6 runs here
+    th.set_num_threads(1)
+    for conf in (algo, f"{algo}_dropin"):
+        manager = ExperimentManager(
+            argparse.Namespace(), algo, DOORKEY, str(tmp_path), eval_freq=-1, hyperparams={"n_envs": 2},
+            config=str(HYPERPARAMS / f"{conf}.yml"), verbose=0, seed=0,
+        )
+        with contextlib.redirect_stdout(io.StringIO()):
+            model, _ = manager.setup_experiment()
+        try:
+            assert type(model) is {"a2c": A2C, "dqn": DQN}[algo]
+            extractor = model.q_net.features_extractor if algo == "dqn" else model.policy.features_extractor
+            assert isinstance(extractor, PaperCNN)
+            found = find_gocu_module(model.env)
+            if conf == algo:
+                assert found is None
+            else:
+                assert found[1] == "sum" and any(isinstance(cb, GoCuCallback) for cb in manager.callbacks)
         finally:
             model.env.close()
 

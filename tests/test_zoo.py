@@ -122,13 +122,18 @@ def test_config_files_hold_the_paper_values():
                 assert entry["n_timesteps"] == next(v for k, v in budgets.items() if k in env_id)
             else:
                 assert entry["frame_stack"] == 4 and entry["n_envs"] == 8 and entry["policy"] == "CnnPolicy"
-                assert entry["env_wrapper"] == ["stable_baselines3.common.atari_wrappers.AtariWrapper"]
+                rooms = ["sb3_gocu.RoomInfoWrapper"] if "Montezuma" in env_id else []  # Montezuma's room byte
+                assert entry["env_wrapper"] == ["stable_baselines3.common.atari_wrappers.AtariWrapper", *rooms]
+                callbacks = entry["callback"] if isinstance(entry["callback"], list) else [entry["callback"]]
+                assert "sb3_gocu.ExplorationCallback" in callbacks
                 assert entry["env_kwargs"] == {"frameskip": 1, "repeat_action_probability": 0.0}
             if name == "ppo":
-                assert "curiosity_kwargs" not in entry and "vec_env_wrapper" not in entry and "callback" not in entry
+                assert "curiosity_kwargs" not in entry and "vec_env_wrapper" not in entry
+                assert entry.get("callback", "sb3_gocu.ExplorationCallback") == "sb3_gocu.ExplorationCallback"  # no GoCu
             if name == "ppo_dropin":
                 (wrapper,) = entry["vec_env_wrapper"]
-                assert wrapper["sb3_gocu.GoCuVecEnvWrapper"]["mode"] == "sum" and entry["callback"] == "sb3_gocu.GoCuCallback"
+                callbacks = entry["callback"] if isinstance(entry["callback"], list) else [entry["callback"]]
+                assert wrapper["sb3_gocu.GoCuVecEnvWrapper"]["mode"] == "sum" and callbacks[0] == "sb3_gocu.GoCuCallback"
     gocu = files["ppo_gocu"]
     for env_id in ENV_IDS[:4]:
         assert gocu[env_id]["intrinsic_coef"] == 0.25 and gocu[env_id]["curiosity_kwargs"] == paper_gocu
@@ -145,7 +150,7 @@ def test_every_entry_builds_its_model(conf, tmp_path):
     from rl_zoo3.exp_manager import ExperimentManager
     from stable_baselines3 import PPO
 
-    from sb3_gocu import GoCuCallback, PaperCNN, PPO_GoCu
+    from sb3_gocu import ExplorationCallback, GoCuCallback, PaperCNN, PPO_GoCu, RoomInfoWrapper
     from sb3_gocu.wrappers import find_gocu_module
 
     register_zoo()
@@ -163,6 +168,9 @@ def test_every_entry_builds_its_model(conf, tmp_path):
             atari = env_id.startswith("ALE/")
             assert model.observation_space.shape == ((4, 84, 84) if atari else (3, 32, 32))
             assert isinstance(model.policy.features_extractor, PaperCNN) != atari
+            if atari:  # the exploration measures: every Atari entry logs them; Montezuma's env reports its room
+                assert any(isinstance(cb, ExplorationCallback) for cb in manager.callbacks)
+                assert model.env.env_is_wrapped(RoomInfoWrapper) == [("Montezuma" in env_id)] * 2
             found = find_gocu_module(model.env)
             if conf == "ppo":
                 assert found is None

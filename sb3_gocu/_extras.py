@@ -2,7 +2,8 @@
 
 ``pip install sb3-gocu`` brings what ``import sb3_gocu`` needs (Stable-Baselines3, PyTorch, Gymnasium, NumPy);
 the rest comes with extras: ``[minigrid]`` (the ``GoCu/DoorKey-*`` ids), ``[mujoco]`` (``GoCu/VisualReacher-v0``,
-``GoCu/VisualPusher-v0``), ``[atari]`` (the ``ALE/...`` ids), ``[zoo]`` (the rl-zoo3 launchers ``sb3_gocu.train``,
+``GoCu/VisualPusher-v0``), ``[robotics]`` (the ``GoCu/VisualSawyer*`` ids: Meta-World, which pins mujoco 3.3.0),
+``[atari]`` (the ``ALE/...`` ids), ``[zoo]`` (the rl-zoo3 launchers ``sb3_gocu.train``,
 ``.enjoy``, ``.record_video`` and rl-zoo3's plots), ``[plots]`` (matplotlib), ``[all]`` (all of them).
 """
 
@@ -13,6 +14,7 @@ import importlib
 #: Gymnasium id prefix -> (modules its environments need, the extra that brings them)
 ENV_EXTRAS: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ("GoCu/DoorKey-", ("sb3_gocu.envs.minigrid_envs",), "minigrid"),
+    ("GoCu/VisualSawyer", ("sb3_gocu.envs.sawyer_envs",), "robotics"),
     ("GoCu/Visual", ("sb3_gocu.envs.mujoco_envs",), "mujoco"),
     ("ALE/", ("ale_py", "cv2"), "atari"),
 )

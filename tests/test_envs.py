@@ -19,6 +19,7 @@ from sb3_gocu.envs import (
     DOORKEY_IDS,
     GOCU_ENV_IDS,
     MUJOCO_IDS,
+    SAWYER_LENGTHS,
     register_envs,
 )
 
@@ -44,7 +45,8 @@ def test_register_envs_idempotent():
     for env_id in GOCU_ENV_IDS:
         spec = gym.spec(env_id)
         assert isinstance(spec.entry_point, str) and spec.entry_point.startswith("sb3_gocu.envs.")
-    assert set(GOCU_ENV_IDS) == set(DOORKEY_SIZES) | set(MUJOCO_LENGTHS)
+    assert set(GOCU_ENV_IDS) == set(DOORKEY_SIZES) | set(MUJOCO_LENGTHS) | set(SAWYER_LENGTHS)
+    assert all(gym.spec(env_id).max_episode_steps == n for env_id, n in SAWYER_LENGTHS.items())
     assert gym.spec("GoCu/VisualReacher-v0").max_episode_steps == 50
     assert gym.spec("GoCu/VisualPusher-v0").max_episode_steps == 100
 

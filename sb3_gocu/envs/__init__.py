@@ -7,13 +7,16 @@ importing ``minigrid`` or ``mujoco``: the entry points are strings, resolved by 
   MiniGrid DoorKey, observed as a 32x32x3 uint8 RGB image of the agent's view (see ``minigrid_envs``).
 - ``GoCu/VisualReacher-v0``, ``GoCu/VisualPusher-v0``: Reacher-v5 / Pusher-v5 observed as 32x32x3
   uint8 renders with a sparse success reward (see ``mujoco_envs``).
+- ``GoCu/VisualSawyerReacher-v0``, ``GoCu/VisualSawyerDoorHook-v0``, ``GoCu/VisualSawyerPusher-v0``,
+  ``GoCu/VisualSawyerPickAndPlace-v0``: the paper's Sawyer tasks on Meta-World, 32x32x3 uint8 frames, sparse
+  success reward (see ``sawyer_envs``).
 - Atari: the ale-py ids in :data:`ATARI_HARD_EXPLORATION` are used directly (nothing to register).
 
 Because registration happens on import, ``gym.make("sb3_gocu.envs:GoCu/DoorKey-8x8-v0")`` works in
 a fresh process (e.g. a ``SubprocVecEnv`` worker started with ``spawn``/``forkserver``).
 
 Making the envs needs an extra of the package: ``[minigrid]`` (DoorKey), ``[mujoco]`` (VisualReacher,
-VisualPusher) or ``[atari]`` (ale-py); without it, ``gym.make`` raises a ``ModuleNotFoundError`` naming the extra.
+VisualPusher), ``[robotics]`` (VisualSawyer*) or ``[atari]`` (ale-py); without it, ``gym.make`` raises a ``ModuleNotFoundError`` naming the extra.
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ __all__ = [
     "DOORKEY_SIZES",
     "GOCU_ENV_IDS",
     "MUJOCO_IDS",
+    "SAWYER_IDS",
+    "SAWYER_LENGTHS",
     "register_envs",
 ]
 
@@ -37,10 +42,18 @@ ATARI_HARD_EXPLORATION: tuple[str, ...] = ("ALE/MontezumaRevenge-v5", "ALE/Priva
 DOORKEY_SIZES: tuple[int, ...] = (5, 8, 11, 16)
 #: Registered DoorKey ids, smallest grid first.
 DOORKEY_IDS: tuple[str, ...] = tuple(f"GoCu/DoorKey-{n}x{n}-v0" for n in DOORKEY_SIZES)
-#: Registered MuJoCo ids.
+#: Registered MuJoCo ids (Gymnasium's Reacher and Pusher).
 MUJOCO_IDS: tuple[str, ...] = ("GoCu/VisualReacher-v0", "GoCu/VisualPusher-v0")
+#: Registered ids of the paper's Sawyer tasks on Meta-World (:mod:`sb3_gocu.envs.sawyer_envs`), with their episode lengths.
+SAWYER_LENGTHS: dict[str, int] = {
+    "GoCu/VisualSawyerReacher-v0": 150,
+    "GoCu/VisualSawyerDoorHook-v0": 150,
+    "GoCu/VisualSawyerPusher-v0": 150,
+    "GoCu/VisualSawyerPickAndPlace-v0": 150,
+}
+SAWYER_IDS: tuple[str, ...] = tuple(SAWYER_LENGTHS)
 #: All ids registered by :func:`register_envs`.
-GOCU_ENV_IDS: tuple[str, ...] = DOORKEY_IDS + MUJOCO_IDS
+GOCU_ENV_IDS: tuple[str, ...] = DOORKEY_IDS + MUJOCO_IDS + SAWYER_IDS
 
 
 def register_envs() -> None:
@@ -68,6 +81,12 @@ def register_envs() -> None:
     for env_id, entry_point, max_episode_steps in mujoco_specs:
         if env_id not in registry:
             gym.register(id=env_id, entry_point=entry_point, max_episode_steps=max_episode_steps)
+    for env_id, max_episode_steps in SAWYER_LENGTHS.items():
+        if env_id not in registry:
+            gym.register(
+                id=env_id, entry_point="sb3_gocu.envs.sawyer_envs:make_visual_sawyer", kwargs={"env_id": env_id},
+                max_episode_steps=max_episode_steps,
+            )
 
 
 register_envs()

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from sb3_gocu.envs import SAWYER_IDS, SAWYER_LENGTHS
-from sb3_gocu.envs.sawyer_envs import SAWYER_TASKS, SceneRenderer, VisualSawyer, cluster_mesh, visible_bodies
+from sb3_gocu.envs.sawyer_envs import (
+    SAWYER_TASKS,
+    SceneRenderer,
+    VisualSawyer,
+    add_second_puck,
+    cluster_mesh,
+    visible_bodies,
+)
 
 IMAGE_SPACE = gym.spaces.Box(0, 255, (32, 32, 3), np.uint8)
 #: Meta-World's success radius of each task (its evaluate_state)
@@ -15,6 +22,7 @@ SUCCESS_RADIUS = {
     "GoCu/VisualSawyerDoorHook-v0": 0.08,
     "GoCu/VisualSawyerPusher-v0": 0.05,
     "GoCu/VisualSawyerPickAndPlace-v0": 0.07,
+    "GoCu/VisualSawyerMultiObjectPusher-v0": 0.05,  # each puck to its own goal; the distance is their mean
 }
 
 
@@ -34,8 +42,12 @@ def test_spaces_length_reward_distance_and_moving_frames(env_id):
         obs, reward, terminated, truncated, info = env.step(action)
         assert env.observation_space.contains(obs)
         assert reward == float(info["is_success"]) and not terminated
-        # the distance is the one Meta-World's success test reads
-        assert info["is_success"] == (info["distance"] <= SUCCESS_RADIUS[env_id])
+        # the distance is the one the success test reads
+        if "MultiObject" in env_id:
+            assert info["is_success"] == bool((sim.puck_distances() <= 0.05).all())
+            assert info["distance"] == pytest.approx(sim.puck_distances().mean())
+        else:
+            assert info["is_success"] == (info["distance"] <= SUCCESS_RADIUS[env_id])
         if t == 10:
             assert np.abs(obs.astype(int) - obs0.astype(int)).mean() > 0.5, "the frame did not change when the arm moved"
         if truncated:
@@ -58,6 +70,30 @@ def test_distance_is_meta_worlds_own_and_forced_success_pays():
     env.close()
 
 
+def test_two_pucks_each_to_its_own_goal():
+    env = gym.make("GoCu/VisualSawyerMultiObjectPusher-v0")
+    obs0, _ = env.reset(seed=1)
+    sim = env.unwrapped.sim
+    pucks, goals = sim._get_pos_objects().reshape(2, 3), np.stack([sim._target_pos, sim.target2])
+    assert np.linalg.norm(pucks[0, :2] - pucks[1, :2]) >= sim.SEPARATION and (goals[:, 1] >= 0.8).all()
+    second = sim.model.jnt_qposadr[sim.model.joint("obj2joint").id]
+
+    def place(first_xy, second_xy):
+        qpos = sim.data.qpos.copy()
+        qpos[9:11], qpos[second:second + 2] = first_xy, second_xy
+        sim.set_state(qpos, np.zeros_like(sim.data.qvel))
+        return env.step(np.zeros(4, np.float32))
+
+    obs, reward, _, _, info = place(goals[0, :2], pucks[1, :2])  # one puck home: not solved
+    assert reward == 0.0 and not info["is_success"] and sim.puck_distances()[0] < 0.01
+    assert np.abs(obs.astype(int) - obs0.astype(int)).sum() > 0, "the moved puck shows"
+    _, reward, _, _, info = place(goals[1, :2], goals[0, :2])  # each on the other's goal: not solved
+    assert reward == 0.0 and not info["is_success"]
+    _, reward, _, _, info = place(goals[0, :2], goals[1, :2])  # both home
+    assert reward == 1.0 and info["is_success"] and info["distance"] < 0.01
+    env.close()
+
+
 def test_seed_fixes_the_variation_and_the_frames():
     a, b = VisualSawyer(SAWYER_TASKS["GoCu/VisualSawyerReacher-v0"]), VisualSawyer(SAWYER_TASKS["GoCu/VisualSawyerReacher-v0"])
     obs_a, info_a = a.reset(seed=3)
@@ -72,7 +108,7 @@ def test_seed_fixes_the_variation_and_the_frames():
     b.close()
 
 
-@pytest.mark.parametrize("env_id", ["GoCu/VisualSawyerPusher-v0", "GoCu/VisualSawyerDoorHook-v0"])
+@pytest.mark.parametrize("env_id", ["GoCu/VisualSawyerMultiObjectPusher-v0", "GoCu/VisualSawyerDoorHook-v0"])
 def test_fast_frames_match_the_full_scene(env_id):
     """Simplified meshes and the hidden parts change a frame by a trace: against frames of Meta-World's own model
     drawn whole, at the same size and supersampling, under 1.5/255 on average and at most 2% of the pixels (edges of
@@ -80,7 +116,8 @@ def test_fast_frames_match_the_full_scene(env_id):
     import cv2
 
     env = VisualSawyer(SAWYER_TASKS[env_id])
-    full = SceneRenderer(env.sim.model_name, 64, env.task.camera, mesh_cell=0.0)
+    edit = add_second_puck if "MultiObject" in env_id else None
+    full = SceneRenderer(env.sim.model_name, 64, env.task.camera, mesh_cell=0.0, edit_spec=edit)
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     for _ in range(5):
@@ -120,3 +157,27 @@ def test_bad_arguments_are_refused():
         with pytest.raises(ValueError, match=message):
             VisualSawyer(task, **kwargs)
     assert mujoco.__version__.startswith("3.3")  # Meta-World's pin, through the [robotics] extra
+
+
+def test_ppo_gocu_trains_on_a_sawyer_task():
+    """A short PPO_GoCu run on the Sawyer family (2 envs, 2,048 steps, tiny curiosity): the curiosity module pretrains,
+    holds goals and trains its predictor on 32x32 frames of a continuous-control task."""
+    import torch as th
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from conftest import TINY_IMAGE_CURIOSITY
+    from sb3_gocu import PPO_GoCu
+
+    threads = th.get_num_threads()
+    th.set_num_threads(1)
+    try:
+        env = make_vec_env("GoCu/VisualSawyerPusher-v0", n_envs=2, seed=0)
+        model = PPO_GoCu("CnnPolicy", env, n_steps=256, batch_size=128, n_epochs=1, seed=0, curiosity_kwargs=TINY_IMAGE_CURIOSITY)
+        model.learn(2048)
+        module = model.curiosity
+        assert model.num_timesteps == 2048 and module.pretrained and module.goal_buffer.size > 0
+        assert module.last_predictor_update > 0, "the predictor was trained"
+        assert len(model.ep_info_buffer) == 2 * (1024 // 150)  # each env finished its 150-step episodes
+        env.close()
+    finally:
+        th.set_num_threads(threads)

@@ -44,6 +44,11 @@ ENV_IDS = (
     "GoCu/DoorKey-16x16-v0",
     "GoCu/VisualReacher-v0",
     "GoCu/VisualPusher-v0",
+    "GoCu/VisualSawyerReacher-v0",
+    "GoCu/VisualSawyerDoorHook-v0",
+    "GoCu/VisualSawyerPusher-v0",
+    "GoCu/VisualSawyerMultiObjectPusher-v0",
+    "GoCu/VisualSawyerPickAndPlace-v0",
     "ALE/MontezumaRevenge-v5",
     "ALE/PrivateEye-v5",
     "ALE/Pitfall-v5",
@@ -111,7 +116,7 @@ def test_default_conf_file():
 def test_config_files_hold_the_paper_values():
     files = {name: yaml.safe_load((HYPERPARAMS / f"{name}.yml").read_text()) for name in ("ppo_gocu", "ppo", "ppo_dropin")}
     ppo_keys = dict(n_envs=PAPER_N_ENVS, **PAPER_PPO_KWARGS, policy="CnnPolicy")
-    budgets = {"5x5": 5e5, "8x8": 2e6, "11x11": 4e6, "16x16": 5e6, "VisualReacher": 5e5, "VisualPusher": 5e5}
+    budgets = {"5x5": 5e5, "8x8": 2e6, "11x11": 4e6, "16x16": 5e6, "Visual": 5e5}
     paper_gocu = dict(n_goals=50, goal_buffer_size=1500, new_goals_per_episode=7, goal_strategy="proportional", reward_scale=10, prior_weight=3, distance_weight=1, label_threshold=15, label_slope=0.8)
     for name, entries in files.items():
         for env_id in ENV_IDS:
@@ -137,9 +142,9 @@ def test_config_files_hold_the_paper_values():
     gocu = files["ppo_gocu"]
     for env_id in ENV_IDS[:4]:
         assert gocu[env_id]["intrinsic_coef"] == 0.25 and gocu[env_id]["curiosity_kwargs"] == paper_gocu
-    for env_id in ENV_IDS[4:6]:
+    for env_id in ENV_IDS[4:11]:
         assert gocu[env_id]["curiosity_kwargs"] == {**paper_gocu, "n_goals": 25, "goal_buffer_size": 1000, "predictor_hidden": [512, 512, 512], "predictor_lr": 3e-4, "predictor_batch_size": 64}
-    for env_id in ENV_IDS[6:]:
+    for env_id in ENV_IDS[11:]:
         assert gocu[env_id]["curiosity_kwargs"]["image_channels"] == 1
 
 

@@ -8,7 +8,7 @@ importing ``minigrid`` or ``mujoco``: the entry points are strings, resolved by 
 - ``GoCu/VisualReacher-v0``, ``GoCu/VisualPusher-v0``: Reacher-v5 / Pusher-v5 observed as 32x32x3
   uint8 renders with a sparse success reward (see ``mujoco_envs``).
 - ``GoCu/VisualSawyerReacher-v0``, ``GoCu/VisualSawyerDoorHook-v0``, ``GoCu/VisualSawyerPusher-v0``,
-  ``GoCu/VisualSawyerPickAndPlace-v0``: the paper's Sawyer tasks on Meta-World, 32x32x3 uint8 frames, sparse
+  ``GoCu/VisualSawyerMultiObjectPusher-v0``, ``GoCu/VisualSawyerPickAndPlace-v0``: the paper's Sawyer tasks on Meta-World, 32x32x3 uint8 frames, sparse
   success reward (see ``sawyer_envs``).
 - Atari: the ale-py ids in :data:`ATARI_HARD_EXPLORATION` are used directly (nothing to register).
 
@@ -49,6 +49,7 @@ SAWYER_LENGTHS: dict[str, int] = {
     "GoCu/VisualSawyerReacher-v0": 150,
     "GoCu/VisualSawyerDoorHook-v0": 150,
     "GoCu/VisualSawyerPusher-v0": 150,
+    "GoCu/VisualSawyerMultiObjectPusher-v0": 200,
     "GoCu/VisualSawyerPickAndPlace-v0": 150,
 }
 SAWYER_IDS: tuple[str, ...] = tuple(SAWYER_LENGTHS)

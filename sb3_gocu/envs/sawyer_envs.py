@@ -41,7 +41,10 @@ try:
 except ModuleNotFoundError as e:  # the [robotics] extra brings them
     raise missing_extra(e, "sb3_gocu.envs.sawyer_envs (the GoCu/VisualSawyer* ids)", "robotics") from e
 
-__all__ = ["SAWYER_TASKS", "SawyerTask", "VisualSawyer", "make_visual_sawyer"]
+__all__ = ["N_VARIATIONS", "SAWYER_TASKS", "SawyerTask", "TwoPuckPushEnv", "VisualSawyer", "make_visual_sawyer"]
+
+#: object and goal layouts of a task (Meta-World's MT1 count), drawn from the env's seed
+N_VARIATIONS = 50
 
 
 def _target(env: Any) -> np.ndarray:
@@ -56,6 +59,11 @@ def _reach_distance(env: Any) -> float:
 def _object_distance(env: Any) -> float:
     """Object centre to the goal, metres (push: <= 0.05; pick-and-place: <= 0.07)."""
     return float(np.linalg.norm(env._get_pos_objects()[:3] - _target(env)))
+
+
+def _two_puck_distance(env: Any) -> float:
+    """Mean over the two pucks of puck centre to its own goal, metres (success: each <= 0.05)."""
+    return float(np.mean(env.puck_distances()))
 
 
 def _door_distance(env: Any) -> float:
@@ -100,7 +108,97 @@ SAWYER_TASKS: dict[str, SawyerTask] = {
     "GoCu/VisualSawyerDoorHook-v0": SawyerTask("door-open-v3", _door_distance, DOOR_CAMERA, (*_UNSEEN, "RetainingWall")),
     "GoCu/VisualSawyerPusher-v0": SawyerTask("push-v3", _object_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
     "GoCu/VisualSawyerPickAndPlace-v0": SawyerTask("pick-place-v3", _object_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
+    # not a Meta-World task: built here on push-v3's scene (TwoPuckPushEnv)
+    "GoCu/VisualSawyerMultiObjectPusher-v0": SawyerTask("two-puck-push", _two_puck_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
 }
+
+
+# ---------------------------------------------------------------------------------------------- two pucks
+def add_second_puck(spec: Any) -> None:
+    """Adds to push-v3's scene a second puck (``obj2``: blue, the first one's size and mass) and its goal (``goal2``:
+    yellow; the first puck is red, its goal green). :param spec: the ``mujoco.MjSpec`` of push-v3's scene"""
+    body = spec.worldbody.add_body(name="obj2", pos=[0.1, 0.6, 0.02])
+    body.add_freejoint(name="obj2joint")
+    body.explicitinertial = True
+    body.mass = 0.75
+    body.inertia = [8.80012e-04] * 3
+    body.add_geom(
+        name="obj2Geom", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.02, 0.02, 0], rgba=[0.1, 0.2, 1, 1],
+        friction=[1, 0.1, 0.002], condim=4, solimp=[0.99, 0.99, 0.01, 0.5, 2], solref=[0.01, 1],
+    )
+    spec.worldbody.add_site(name="goal2", pos=[-0.1, 0.8, 0.02], size=[0.02, 0, 0], rgba=[1, 0.85, 0, 1])
+
+
+class TwoPuckPushEnv(metaworld.envs.SawyerPushEnvV3):
+    """push-v3 with two pucks, each to its own goal: solved when both are within 0.05 m of theirs.
+
+    Meta-World's task sets do not know this task: each reset lays out the pucks and goals from :attr:`layout`
+    (x, y of puck 1, puck 2, goal 1, goal 2), which :class:`VisualSawyer` draws (:meth:`draw_layout`).
+    """
+
+    #: where pucks and goals are drawn: x in [-0.15, 0.15]; pucks at y in [0.6, 0.7], goals at y in [0.8, 0.9]
+    PUCK_LOW, PUCK_HIGH = (-0.15, 0.6), (0.15, 0.7)
+    GOAL_LOW, GOAL_HIGH = (-0.15, 0.8), (0.15, 0.9)
+    #: the least distance between the two pucks, and between the two goals
+    SEPARATION = 0.08
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.layout = np.array([-0.08, 0.65, 0.08, 0.65, -0.08, 0.85, 0.08, 0.85])
+        self._set_task_called = True  # no Meta-World task: reset_model reads the layout
+
+    def _initialize_simulation(self) -> tuple[Any, Any]:
+        spec = mujoco.MjSpec.from_file(self.fullpath)
+        add_second_puck(spec)
+        model = spec.compile()
+        model.vis.global_.offwidth = max(model.vis.global_.offwidth, self.width)
+        model.vis.global_.offheight = max(model.vis.global_.offheight, self.height)
+        return model, mujoco.MjData(model)
+
+    @classmethod
+    def draw_layout(cls, rng: np.random.Generator) -> np.ndarray:
+        """A layout: pucks and goals uniform in their regions, each pair at least :attr:`SEPARATION` apart."""
+        while True:
+            pucks = rng.uniform(cls.PUCK_LOW, cls.PUCK_HIGH, (2, 2))
+            goals = rng.uniform(cls.GOAL_LOW, cls.GOAL_HIGH, (2, 2))
+            if min(np.linalg.norm(pucks[0] - pucks[1]), np.linalg.norm(goals[0] - goals[1])) >= cls.SEPARATION:
+                return np.concatenate([pucks.ravel(), goals.ravel()])
+
+    def _get_pos_objects(self) -> np.ndarray:
+        return np.hstack([self.get_body_com("obj"), self.get_body_com("obj2")])
+
+    def _get_quat_objects(self) -> np.ndarray:
+        return np.hstack([super()._get_quat_objects(), np.array([1.0, 0.0, 0.0, 0.0])])
+
+    @property
+    def _target_site_config(self) -> list[tuple[str, np.ndarray]]:
+        return [("goal", self._target_pos), ("goal2", self.target2)]
+
+    def puck_distances(self) -> np.ndarray:
+        """Each puck's centre to its own goal, metres."""
+        pucks = self._get_pos_objects().reshape(2, 3)
+        return np.linalg.norm(pucks - np.stack([self._target_pos, self.target2]), axis=1)
+
+    def reset_model(self) -> np.ndarray:
+        self._reset_hand()
+        z = self.init_config["obj_init_pos"][2]
+        p1, p2, g1, g2 = self.layout.reshape(4, 2)
+        self._target_pos = np.array([*g1, z])
+        self.target2 = np.array([*g2, z])
+        self.obj_init_pos = np.array([*p1, z])
+        self._set_obj_xyz(self.obj_init_pos)
+        qpos, qvel = self.data.qpos.copy(), self.data.qvel.copy()
+        adr = self.model.jnt_qposadr[self.model.joint("obj2joint").id]
+        qpos[adr:adr + 7] = [*p2, z, 1, 0, 0, 0]
+        qvel[self.model.jnt_dofadr[self.model.joint("obj2joint").id]:][:6] = 0
+        self.set_state(qpos, qvel)
+        self.model.site("goal").pos = self._target_pos
+        self.model.site("goal2").pos = self.target2
+        return self._get_obs()
+
+    def evaluate_state(self, obs: np.ndarray, action: np.ndarray) -> tuple[float, dict[str, Any]]:
+        distances = self.puck_distances()
+        return -float(distances.sum()), {"success": float((distances <= 0.05).all()), "obj_to_target": float(distances.mean())}
 
 
 # ---------------------------------------------------------------------------------------------- rendering
@@ -137,7 +235,8 @@ def visible_bodies(env: "VisualSawyer", grid: int = 4, scale: int = 4) -> set[st
     times the frame's resolution. What never shows can be left out of the frames (:attr:`SawyerTask.hidden_bodies`).
     """
     sim = env.sim
-    scene = SceneRenderer(sim.model_name, env.image_size * scale, env.task.camera, mesh_cell=0.0)  # nothing hidden
+    edit = add_second_puck if isinstance(sim, TwoPuckPushEnv) else None
+    scene = SceneRenderer(sim.model_name, env.image_size * scale, env.task.camera, mesh_cell=0.0, edit_spec=edit)  # nothing hidden
     segmenter = scene.renderer
     segmenter.enable_segmentation_rendering()
     seen: set[int] = set()
@@ -165,14 +264,23 @@ class SceneRenderer:
     :param camera: free camera: ``lookat``, ``distance``, ``azimuth``, ``elevation``
     :param mesh_cell: vertex-clustering cell, metres (0: the meshes as they are)
     :param hidden_bodies: bodies whose geoms are not drawn
+    :param edit_spec: changes the scene before it is compiled (as the simulation's was: :func:`add_second_puck`)
     """
 
     def __init__(
-        self, xml_path: str, size: int, camera: dict[str, Any], mesh_cell: float = 0.01, hidden_bodies: tuple[str, ...] = ()
+        self,
+        xml_path: str,
+        size: int,
+        camera: dict[str, Any],
+        mesh_cell: float = 0.01,
+        hidden_bodies: tuple[str, ...] = (),
+        edit_spec: Optional[Callable[[Any], None]] = None,
     ) -> None:
         if mesh_cell < 0:
             raise ValueError(f"mesh_cell must be >= 0, got {mesh_cell}")
         spec = mujoco.MjSpec.from_file(xml_path)
+        if edit_spec is not None:
+            edit_spec(spec)
         if mesh_cell > 0:
             folder = pathlib.Path(xml_path).parent
             for mesh in spec.meshes:
@@ -248,11 +356,12 @@ class VisualSawyer(gym.Env):
         self.image_size = int(image_size)
         self.supersample = int(supersample)
         self.render_mode = render_mode
-        self.sim = metaworld.env_dict.ALL_V3_ENVIRONMENTS[task.metaworld_name]()
-        self._tasks: list[Any] = []
-        self._task_seed: Optional[int] = None
+        two_pucks = task.metaworld_name == "two-puck-push"
+        self.sim = TwoPuckPushEnv() if two_pucks else metaworld.env_dict.ALL_V3_ENVIRONMENTS[task.metaworld_name]()
+        self._variations: list[Any] = []  # Meta-World tasks, or two-puck layouts
         self.scene = SceneRenderer(
-            self.sim.model_name, self.image_size * self.supersample, task.camera, mesh_cell, task.hidden_bodies
+            self.sim.model_name, self.image_size * self.supersample, task.camera, mesh_cell, task.hidden_bodies,
+            add_second_puck if two_pucks else None,
         )
         self.observation_space = spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
         self.action_space = spaces.Box(-1.0, 1.0, self.sim.action_space.shape, np.float32)
@@ -266,18 +375,25 @@ class VisualSawyer(gym.Env):
         return self._frame
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict[str, Any]] = None) -> tuple[np.ndarray, dict[str, Any]]:
-        """Pick one of the task's 50 variations at random and start an episode in it.
+        """Pick one of the task's :data:`N_VARIATIONS` variations at random and start an episode in it.
 
         :param seed: seeds the variations (the first reset draws them) and the choice among them
         :param options: unused
         :return: the first frame, and ``info`` with ``distance``, ``is_success`` and ``variation``
         """
         super().reset(seed=seed)
-        if not self._tasks or seed is not None:
-            task_seed = int(self.np_random.integers(2**31 - 1))
-            self._tasks = list(metaworld.MT1(self.task.metaworld_name, seed=task_seed).train_tasks)
-        variation = int(self.np_random.integers(len(self._tasks)))
-        self.sim.set_task(self._tasks[variation])
+        two_pucks = isinstance(self.sim, TwoPuckPushEnv)
+        if not self._variations or seed is not None:
+            if two_pucks:
+                self._variations = [TwoPuckPushEnv.draw_layout(self.np_random) for _ in range(N_VARIATIONS)]
+            else:
+                task_seed = int(self.np_random.integers(2**31 - 1))
+                self._variations = list(metaworld.MT1(self.task.metaworld_name, seed=task_seed).train_tasks)
+        variation = int(self.np_random.integers(len(self._variations)))
+        if two_pucks:
+            self.sim.layout = self._variations[variation]
+        else:
+            self.sim.set_task(self._variations[variation])
         self.sim.reset()
         distance = self.task.distance(self.sim)
         return self._observe(), {"distance": distance, "is_success": False, "variation": variation}

@@ -7,6 +7,12 @@ raw env steps/s with random actions (the ceiling), plain PPO steps/s, PPO_GoCu s
 K = 50, 5x512 predictor, P_m = 20k, P_vae = 100k, VAE pretraining on 10k random-policy observations, all
 included), their ratio, and PPO_GoCu's time split into env stepping, policy forward and rollout
 bookkeeping, PPO update, curiosity inference, VAE training (pretraining included) and predictor training.
+With ``--zoo`` (the default for ``ALE/...`` ids) both agents are built as the zoo launcher builds them, from
+``sb3_gocu/hyperparams/ppo.yml`` and ``ppo_gocu.yml`` (env wrappers, frame stack, n_envs, schedules; curiosity
+settings given here are merged into the YAML's), e.g.
+
+    python benchmarks/throughput.py --env ALE/MontezumaRevenge-v5 --timesteps 20000
+
 ``--order`` picks which agent runs first. glibc's allocator makes the first training run of a process slower
 (it keeps returning memory and faulting it in again until its dynamic thresholds have grown), so by default
 (``--malloc fixed``) the thresholds are fixed at the start and the order no longer matters.
@@ -68,8 +74,40 @@ def innermost(venv: Any) -> Any:
     return venv
 
 
-def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int) -> float:
-    venv = make_vec_env(env_id, n_envs=n_envs, seed=seed)
+def zoo_manager(algo: str, env_id: str, seed: int, hyperparams: dict[str, Any] | None = None) -> Any:
+    """rl-zoo3's ExperimentManager for ``algo`` on ``env_id`` with our YAML file (logs in a temporary folder)."""
+    import tempfile
+
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    from sb3_gocu.zoo import hyperparams_dir, register_zoo
+
+    register_zoo()
+    return ExperimentManager(
+        argparse.Namespace(), algo, env_id, tempfile.mkdtemp(prefix="throughput_"), eval_freq=-1, verbose=0, seed=seed,
+        config=str(hyperparams_dir() / f"{algo}.yml"), hyperparams=hyperparams or {},
+    )
+
+
+def zoo_model(algo: str, env_id: str, seed: int, curiosity_overrides: dict[str, Any] | None = None) -> Any:
+    """The model the zoo launcher builds for ``algo`` (``ppo`` or ``ppo_gocu``); curiosity overrides merged into the
+    YAML's ``curiosity_kwargs``."""
+    import contextlib
+    import io
+
+    hyperparams: dict[str, Any] = {}
+    if curiosity_overrides:
+        with contextlib.redirect_stdout(io.StringIO()):
+            configured = zoo_manager(algo, env_id, seed).read_hyperparameters()[0].get("curiosity_kwargs", {})
+        hyperparams["curiosity_kwargs"] = {**configured, **curiosity_overrides}
+    with contextlib.redirect_stdout(io.StringIO()):
+        model, _ = zoo_manager(algo, env_id, seed, hyperparams).setup_experiment()
+    return model
+
+
+def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int, zoo: bool = False) -> float:
+    venv = zoo_model("ppo", env_id, seed).get_env() if zoo else make_vec_env(env_id, n_envs=n_envs, seed=seed)
+    n_envs = venv.num_envs
     venv.reset()
     rng = np.random.default_rng(seed)
     n = venv.action_space.n
@@ -80,14 +118,23 @@ def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int) -> float:
 
 
 def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dict[str, Any], gocu_model: str | None = None,
-        overrides: dict[str, Any] | None = None, model_attrs: dict[str, Any] | None = None) -> dict[str, float]:
+        overrides: dict[str, Any] | None = None, model_attrs: dict[str, Any] | None = None, zoo: bool = False) -> dict[str, float]:
     """One arm: ``algo`` for ``timesteps`` steps; ``overrides``: curiosity settings that replace those of
-    ``curiosity_kwargs`` (a fresh agent) or of the loaded model (``gocu_model``)."""
+    ``curiosity_kwargs`` (a fresh agent) or of the loaded model (``gocu_model``); ``zoo``: the agent the zoo launcher
+    builds from our YAML files."""
     overrides = overrides or {}
-    venv = make_vec_env(env_id, n_envs=16, seed=seed)
     timer = Timer()
+    if zoo:
+        if gocu_model is not None:
+            raise ValueError("--gocu-model and --zoo do not go together")
+        model = zoo_model(algo, env_id, seed, {**curiosity_kwargs, **overrides} if algo == "ppo_gocu" else None)
+        venv = model.get_env()
+    else:
+        venv = make_vec_env(env_id, n_envs=16, seed=seed)
     timer.wrap(innermost(venv), "step_wait", "env")
-    if algo == "ppo":
+    if zoo:
+        pass
+    elif algo == "ppo":
         model = PPO("CnnPolicy", venv, seed=seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **PPO_SETTINGS)
     elif gocu_model is not None:
         # a trained agent: its policy moves (fewer repeated states, more scoring), its goal buffer is full
@@ -110,7 +157,7 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
     t0 = time.perf_counter()
     model.learn(timesteps)
     total = time.perf_counter() - t0
-    out = {"total_s": total, "steps": float(model.num_timesteps), "steps_per_s": model.num_timesteps / total}
+    out = {"total_s": total, "steps": float(model.num_timesteps), "steps_per_s": model.num_timesteps / total, "n_envs": float(venv.num_envs)}
     out.update({f"{k}_s": v for k, v in timer.totals.items()})
     if algo == "ppo_gocu":
         mod = model.curiosity
@@ -150,6 +197,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (both agents; every recorded run gives it)")
     parser.add_argument("--order", choices=["ppo-first", "gocu-first"], default="ppo-first")
+    parser.add_argument("--zoo", action=argparse.BooleanOptionalAction, default=None,
+                        help="build the agents from the zoo's YAML files (default: for ALE/... ids only)")
     parser.add_argument("--malloc", choices=["fixed", "default"], default="fixed",
                         help="fixed: glibc trim/mmap thresholds set once for the process, so no run pays for being first; "
                         "default: glibc's own dynamic thresholds")
@@ -175,6 +224,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if not isinstance(arm, dict) or not set(arm) <= {"curiosity", "model"}:
             parser.error(f"--also-arm must be a JSON object with the keys 'curiosity' and/or 'model', got {arm!r}")
     th.set_num_threads(args.threads)
+    zoo = args.env.startswith("ALE/") if args.zoo is None else args.zoo
     curiosity_kwargs = json.loads(args.curiosity_kwargs)
     malloc = "glibc default (dynamic thresholds)"
     if args.malloc == "fixed":
@@ -184,7 +234,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(f"command: {' '.join(command)}")
     print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {th.__version__}, threads {args.threads}, seed {args.seed}; "
           f"order {args.order}; malloc: {malloc}")
-    raw = raw_env_rate(args.env, 16, min(args.timesteps, 32_000), args.seed)
+    raw = raw_env_rate(args.env, 16, min(args.timesteps, 32_000), args.seed, zoo)
     results = {}
     labels_extra: dict[str, str] = {}
     base_model = json.loads(args.model_kwargs)
@@ -192,24 +242,24 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     order = ["ppo", "ppo_gocu"] if args.order == "ppo-first" else ["ppo_gocu", "ppo"]
     for algo in order:
         thunks.append((algo, lambda algo=algo: run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
-                                                   model_attrs=base_model if algo == "ppo_gocu" else None)))
+                                                   model_attrs=base_model if algo == "ppo_gocu" else None, zoo=zoo)))
     for i, extra in enumerate(args.also_model_kwargs or []):
         thunks.append((f"ppo_gocu_model_{i}", lambda extra=extra: run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs,
-                                                                       args.gocu_model, model_attrs={**base_model, **json.loads(extra)})))
+                                                                       args.gocu_model, model_attrs={**base_model, **json.loads(extra)}, zoo=zoo)))
         labels_extra[f"ppo_gocu_model_{i}"] = extra
     for i, extra in enumerate(args.also_curiosity_kwargs or []):
         thunks.append((f"ppo_gocu_curiosity_{i}", lambda extra=extra: run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs,
-                                                                           args.gocu_model, overrides=json.loads(extra), model_attrs=base_model)))
+                                                                           args.gocu_model, overrides=json.loads(extra), model_attrs=base_model, zoo=zoo)))
         labels_extra[f"ppo_gocu_curiosity_{i}"] = extra
     for i, (text, arm) in enumerate(zip(args.also_arm or [], arms)):
         thunks.append((f"ppo_gocu_arm_{i}", lambda arm=arm: run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
-                                                                 overrides=arm.get("curiosity"), model_attrs={**base_model, **arm.get("model", {})})))
+                                                                 overrides=arm.get("curiosity"), model_attrs={**base_model, **arm.get("model", {})}, zoo=zoo)))
         labels_extra[f"ppo_gocu_arm_{i}"] = text
     for name, thunk in (reversed(thunks) if args.reverse else thunks):
         results[name] = thunk()
         print(f"{name}: {results[name]['steps_per_s']:.0f} steps/s", flush=True)
     ppo, gocu = results["ppo"], results["ppo_gocu"]
-    print(f"\n{args.env}, {args.timesteps} steps, 16 envs")
+    print(f"\n{args.env}, {args.timesteps} steps, {results['ppo']['n_envs']:.0f} envs" + (" (the zoo's YAML settings)" if zoo else ""))
     print(f"raw env (random actions)      {raw:8.0f} steps/s")
     print(f"plain PPO                     {ppo['steps_per_s']:8.0f} steps/s")
     print(f"PPO_GoCu                      {gocu['steps_per_s']:8.0f} steps/s")

@@ -232,3 +232,31 @@ def test_numpy_to_tensor_equals_the_torch_path_to_the_bit(shape):
     assert got.dtype == th.float32 and got.is_contiguous() and got.shape == ref.shape == (4, *((1, *shape) if len(shape) == 2 else (3, 32, 32)))
     assert th.equal(got, ref)
     assert float(got.max()) <= 1.0 and float(got.max()) > 0.9
+
+
+@pytest.mark.parametrize("layout", ["chw", "hwc", "hw"])
+def test_large_images_are_kept_as_block_means(layout):
+    """Images longer than MAX_IMAGE_SIDE (64) a side: GoCu keeps and embeds them averaged over f x f blocks (uint8
+    means rounded; Atari's 84x84: f = 2, 42x42), newest channel only where image_channels says so; the module's VAE
+    and buffers take the smaller frames. 32x32 and 64x64 images are kept whole."""
+    from sb3_gocu.curiosity.observations import ObservationAdapter
+
+    shape = {"chw": (4, 84, 84), "hwc": (84, 84, 4), "hw": (84, 84)}[layout]
+    channels = None if layout == "hw" else 1
+    adapter = ObservationAdapter(spaces.Box(0, 255, shape, np.uint8), image_channels=channels)
+    assert adapter.image_downsample == 2 and adapter.input_shape == (1, 42, 42)
+    obs = np.random.default_rng(0).integers(0, 256, (3, *shape), dtype=np.uint8)
+    newest = obs[:, -1] if layout == "chw" else obs[..., -1] if layout == "hwc" else obs
+    block = newest[:, 4:6, 10:12].astype(np.float64).mean(axis=(1, 2))  # the block at (2, 5) of the 42x42 frame
+    kept = adapter.extract(obs)
+    assert kept.dtype == np.uint8 and kept.shape == (3, *adapter.raw_shape)
+    kept_2d = kept[:, 0] if layout == "chw" else kept[..., 0] if layout == "hwc" else kept
+    assert np.array_equal(kept_2d[:, 2, 5], np.rint(block).astype(np.uint8))
+    mod = GoalCuriosityModule(spaces.Box(0, 255, shape, np.uint8), image_channels=channels, n_goals=2, goal_buffer_size=8,
+                              predictor_hidden=[16], pretrain_steps=0, memory_size=64)
+    assert mod.vae.input_shape == (1, 42, 42)
+    mod.recording = True
+    raw, _ = mod.step(obs[:2], np.array([False, False]))
+    assert raw.shape == (2,) and mod.memory.size == 2 and mod.memory.observations.shape[1:] == adapter.raw_shape
+    for side, f in ((32, 1), (64, 1), (65, 2), (210, 4)):
+        assert ObservationAdapter(spaces.Box(0, 255, (side, side, 3), np.uint8)).image_downsample == f

@@ -184,11 +184,11 @@ def test_every_entry_builds_its_model(conf, tmp_path):
             assert mode == ("separate" if conf == "ppo_gocu" else "sum")
             if conf == "ppo_gocu":
                 assert module is model.curiosity and model.intrinsic_coef == 0.25
-                # the module embeds the newest frame of the stack on Atari, the RGB view elsewhere
-                assert module.adapter.input_shape == ((1, 84, 84) if atari else (3, 32, 32))
+                # the module embeds the newest frame of the stack on Atari, averaged down to 42x42; the RGB view elsewhere
+                assert module.adapter.input_shape == ((1, 42, 42) if atari else (3, 32, 32))
             else:
                 assert any(isinstance(cb, GoCuCallback) for cb in manager.callbacks)
-                assert module.adapter.input_shape == ((1, 84, 84) if atari else (3, 32, 32))
+                assert module.adapter.input_shape == ((1, 42, 42) if atari else (3, 32, 32))
             assert module.n_goals == (25 if "Visual" in env_id else 50)
         finally:
             model.env.close()

@@ -12,6 +12,9 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
+#: the longest image side GoCu keeps: larger images are averaged down (see :class:`ObservationAdapter`)
+MAX_IMAGE_SIDE = 64
+
 SUPPORTED_SPACES = (
     "Box images (H, W), (H, W, C) or (C, H, W) with C in {1, 3, 4} (uint8 or float), "
     "1-D Box vectors, or a Dict holding at least one such image or vector entry"
@@ -40,6 +43,11 @@ class ObservationAdapter:
         first vector entry)
     :param image_channels: keep only the last ``image_channels`` channels of an image (the newest frame
         of a frame stack, e.g. 1 for Atari's 4 stacked grey frames); ``None`` keeps all channels
+
+    Images whose longer side exceeds :data:`MAX_IMAGE_SIDE` pixels are averaged over f x f blocks, f the smallest
+    integer that brings that side within it (rows and columns beyond a whole block are dropped), before GoCu keeps
+    and embeds them: Atari's 84x84 frames become 42x42, on which the paper's VAE (whose dense layer grows with the
+    image's area) trains about 4x faster; 32x32 views are kept as they are.
     """
 
     observation_space: spaces.Space
@@ -88,10 +96,14 @@ class ObservationAdapter:
                 if not 1 <= self.image_channels <= c:
                     raise ValueError(f"image_channels must be in [1, {c}] for this space, got {self.image_channels}")
                 c = self.image_channels
+            #: the block side images are averaged over (1: kept as they are)
+            self.image_downsample = -(-max(h, w) // MAX_IMAGE_SIDE)
+            h, w = h // self.image_downsample, w // self.image_downsample
             self.input_shape: tuple[int, ...] = (c, h, w)
         else:
             if self.image_channels is not None:
                 raise ValueError("image_channels is only valid for image observations")
+            self.image_downsample = 1
             self.input_shape = (int(box.shape[0]),)
         # The stored raw form keeps the space's dtype (uint8 images stay uint8).
         self.raw_dtype = box.dtype
@@ -111,18 +123,28 @@ class ObservationAdapter:
             self.scale = float(finite_high.max()) if self.is_image and finite_high.size and finite_high.max() > 1 else 1.0
 
     def _raw_shape(self) -> tuple[int, ...]:
-        if not self.is_image or self.image_channels is None:
+        if not self.is_image:
             return tuple(self.box.shape)
-        if self.layout == "hwc":
-            return (*self.box.shape[:2], self.image_channels)
-        return (self.image_channels, *self.box.shape[1:])
+        c, h, w = self.input_shape
+        return {"hw": (h, w), "hwc": (h, w, c), "chw": (c, h, w)}[self.layout]
 
     def extract(self, obs: Any) -> np.ndarray:
-        """The raw batch GoCu keeps (memory bank, goals): the embedded entry, newest channels only."""
+        """The raw batch GoCu keeps (memory bank, goals): the embedded entry, newest channels only, downsampled
+        (block means, rounded back to the space's dtype for integer images)."""
         x = obs[self.obs_key] if self.obs_key is not None else obs
         x = np.asarray(x)
         if self.is_image and self.image_channels is not None:
             x = x[..., -self.image_channels :] if self.layout == "hwc" else x[:, -self.image_channels :]
+        f = self.image_downsample
+        if self.is_image and f > 1:
+            n = x.shape[0]
+            if self.layout == "chw":
+                c, h, w = self.input_shape
+                x = x[:, :, : h * f, : w * f].reshape(n, c, h, f, w, f).mean(axis=(3, 5), dtype=np.float32)
+            else:
+                _, h, w = self.input_shape
+                x = x[:, : h * f, : w * f].reshape(n, h, f, w, f, *x.shape[3:]).mean(axis=(2, 4), dtype=np.float32)
+            x = np.rint(x).astype(self.raw_dtype) if np.issubdtype(self.raw_dtype, np.integer) else x.astype(self.raw_dtype)
         return x
 
     def to_tensor(self, raw: np.ndarray | th.Tensor, device: th.device | str = "cpu") -> th.Tensor:

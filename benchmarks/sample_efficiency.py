@@ -22,6 +22,9 @@ first rollout end past each multiple of a PPO rollout's steps, ``--n-envs`` x ``
   GoCu wrapper sits above Monitor, so they are extrinsic); ``success_rate``: fraction of them with return > 0;
 * ``key_rate`` / ``door_rate`` (DoorKey ids, from ``info["task_phase"]``): fraction of the same episodes in which
   the agent picked up the key / opened the door, a measure of exploration that moves before the return does;
+* ``final_distance`` / ``final_success``: over the same episodes, the mean of ``info["distance"]`` at their last step
+  (the Sawyer and MuJoCo ids: Table 2's final distance) and the fraction whose last step has ``info["is_success"]``;
+  empty where the env reports neither;
 * ``intrinsic_mean`` / ``intrinsic_std``: mean and std of the raw r_gc (eq 13, ``infos["gocu_raw_reward"]``)
   over the rollout's steps, ``intrinsic_norm_mean``: mean of the normalised r_gc (eq 14), ``goals``: goals in the
   goal buffer; empty for PPO; for ppo_rnd the intrinsic columns are RND's raw and normalised reward;
@@ -110,6 +113,7 @@ PPO_SETTINGS: dict[str, Any] = dict(PAPER_PPO_KWARGS)  # both algorithms get the
 N_ENVS = PAPER_N_ENVS
 COLUMNS = (
     "algo", "seed", "steps", "episodes", "window_episodes", "mean_return", "success_rate", "key_rate", "door_rate",
+    "final_distance", "final_success",
     "intrinsic_mean", "intrinsic_std", "intrinsic_norm_mean", "goals", "wall_time_s", "fps",
 )
 
@@ -203,7 +207,7 @@ class SampleEfficiencyCallback(BaseCallback):
         for info in infos:
             ep = info.get("episode")
             if ep is not None:
-                self.run.add_episode(float(ep["r"]), info.get("task_phase"))
+                self.run.add_episode(float(ep["r"]), info.get("task_phase"), info.get("distance"), info.get("is_success"))
         self._infos.append(infos)  # PPO_GoCu fills a step's gocu_* entries one step later (scoring in a worker thread)
         return True
 
@@ -255,6 +259,7 @@ class Run:
         self.rows: list[dict[str, Any]] = []
         self.window: deque = deque(maxlen=args.window)
         self.phases: deque = deque(maxlen=args.window)  # info["task_phase"] at episode ends (DoorKey ids)
+        self.finals: deque = deque(maxlen=args.window)  # (info["distance"], info["is_success"]) at episode ends
         self.episodes = 0
         self.wall_before = 0.0
         self.session_start = time.perf_counter()
@@ -269,10 +274,12 @@ class Run:
         self.stopped_at_threshold: int | None = None
 
     # ------------------------------------------------------------ recording
-    def add_episode(self, ret: float, phase: int | None = None) -> None:
+    def add_episode(self, ret: float, phase: int | None = None, distance: float | None = None, success: bool | None = None) -> None:
         self.window.append(ret)
         if phase is not None:
             self.phases.append(int(phase))
+        if distance is not None or success is not None:
+            self.finals.append((float("nan") if distance is None else float(distance), float("nan") if success is None else float(success)))
         self.episodes += 1
 
     def wall_time(self) -> float:
@@ -283,6 +290,7 @@ class Run:
     ) -> None:
         w = np.asarray(self.window, dtype=np.float64)
         ph = np.asarray(self.phases, dtype=np.int64)
+        finals = np.asarray(self.finals, dtype=np.float64).reshape(-1, 2)
         row = {
             "algo": self.algo,
             "seed": self.seed,
@@ -293,6 +301,8 @@ class Run:
             "success_rate": float((w > 0).mean()) if len(w) else float("nan"),
             "key_rate": float((ph >= 1).mean()) if len(ph) else float("nan"),
             "door_rate": float((ph >= 2).mean()) if len(ph) else float("nan"),
+            "final_distance": float(np.mean(finals[:, 0])) if len(finals) else float("nan"),
+            "final_success": float(np.mean(finals[:, 1])) if len(finals) else float("nan"),
             "intrinsic_mean": intrinsic_mean,
             "intrinsic_std": intrinsic_std,
             "intrinsic_norm_mean": intrinsic_norm,
@@ -323,6 +333,7 @@ class Run:
             "episodes": self.episodes,
             "window": list(self.window),
             "phases": list(self.phases),
+            "finals": [list(f) for f in self.finals],
             "wall_time_s": self.wall_time(),
             "rows": self.rows,
             "resumed_from": self.resumed_from,
@@ -379,6 +390,7 @@ class Run:
             self.rows = state["rows"]
             self.window = deque(state["window"], maxlen=self.args.window)
             self.phases = deque(state.get("phases", []), maxlen=self.args.window)
+            self.finals = deque([tuple(f) for f in state.get("finals", [])], maxlen=self.args.window)
             self.episodes = int(state["episodes"])
             self.wall_before = float(state["wall_time_s"])
             self.resumed_from = list(state.get("resumed_from", []))
@@ -618,9 +630,12 @@ def summarize(out: pathlib.Path, threshold: float, min_window: int, algos: Seque
         if rows:
             runs.setdefault(m.group(1), {})[int(m.group(2))] = rows
     order = [a for a in (algos or ALGOS) if a in runs] + sorted(a for a in runs if a not in (algos or ALGOS))
+    # Table 2's measure, where the env reports it: the last 100 episodes' final distance and final success
+    finals = any(math.isfinite(r[-1].get("final_distance", float("nan"))) for a in runs.values() for r in a.values())
     lines = [
-        f"| algo | seeds | final steps | steps to mean return >= {threshold} | final success rate | final mean return | wall time (min) |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        f"| algo | seeds | final steps | steps to mean return >= {threshold} | final success rate | final mean return | wall time (min) |"
+        + (" final distance | success at the last step |" if finals else ""),
+        "| --- | --- | --- | --- | --- | --- | --- |" + (" --- | --- |" if finals else ""),
     ]
     figures: dict[str, Any] = {}
     for algo in order:
@@ -640,6 +655,8 @@ def summarize(out: pathlib.Path, threshold: float, min_window: int, algos: Seque
             f"| {algo} | {', '.join(map(str, seeds))} | {', '.join(f'{s:,}' for s in final_steps)} | {to_thr} | "
             f"{_pm([r['success_rate'] for r in final], '.3f')} | {_pm([r['mean_return'] for r in final], '.3f')} | "
             f"{_pm([r['wall_time_s'] / 60 for r in final], '.1f')} |"
+            + (f" {_pm([r.get('final_distance', float('nan')) for r in final], '.3f')} |"
+               f" {_pm([r.get('final_success', float('nan')) for r in final], '.3f')} |" if finals else "")
         )
         figures[algo] = {
             "seeds": seeds,
@@ -647,6 +664,7 @@ def summarize(out: pathlib.Path, threshold: float, min_window: int, algos: Seque
             "final_success_rate": [r["success_rate"] for r in final],
             "final_mean_return": [r["mean_return"] for r in final],
             "final_steps": [int(r["steps"]) for r in final],
+            "final_distance": [r.get("final_distance", float("nan")) for r in final],
         }
     return "\n".join(lines), figures
 

@@ -64,6 +64,8 @@ def test_csvs_and_summary(se, two_runs):
         # exploration: episodes that reached the goal also had the key and opened the door
         assert float(last["success_rate"]) <= float(last["door_rate"]) <= float(last["key_rate"]) <= 1.0
         assert float(last["key_rate"]) > 0.0  # a near-random policy picks up the key on DoorKey-5x5
+        # DoorKey's last step succeeds exactly when the episode's return is positive; it reports no distance
+        assert last["final_success"] == last["success_rate"] and all(r["final_distance"] == "" for r in rows)
         intrinsic = [r["intrinsic_mean"] for r in rows]
         if algo == "ppo":
             assert all(v == "" for v in intrinsic) and all(r["goals"] == "" for r in rows)
@@ -597,3 +599,18 @@ def test_ablations_summary_counts_a_miss_at_the_budget(tmp_path):
     assert "running (1,000)" in lines["one_value_head"] and "(0 so far)" in lines["one_value_head"]
     assert "| 0 of 1 | (3,000 so far) | +50.0% steps on seed 0 |" in lines["vae_untrained"]  # against the defaults' 2,000 on seed 0
     assert (out / "curves.png").stat().st_size > 0
+
+
+def test_final_distance_and_success_on_a_sawyer_task(se, tmp_path):
+    """On a task that reports info['distance'] (the Sawyer ids), the CSV's final_distance is the mean distance at the
+    episodes' last steps, and the summary shows it (Table 2's measure)."""
+    th.set_num_threads(1)
+    out = tmp_path / "sawyer"
+    args = tiny_args(out, 1024, "--algos", "ppo")
+    args[args.index("GoCu/DoorKey-5x5-v0")] = "GoCu/VisualSawyerReacher-v0"
+    summary = se.main(args)
+    rows = read(out / "ppo_seed0.csv")
+    last = rows[-1]
+    assert int(last["window_episodes"]) == 4 * (1024 // 4 // 150)  # 4 envs of 256 steps, 150-step episodes
+    assert 0.05 < float(last["final_distance"]) < 1.0 and float(last["final_success"]) == 0.0  # a random policy
+    assert "final distance" in summary and f"{float(last['final_distance']):.3f}" in summary

@@ -29,7 +29,8 @@ first rollout end past each multiple of a PPO rollout's steps, ``--n-envs`` x ``
   over the rollout's steps, ``intrinsic_norm_mean``: mean of the normalised r_gc (eq 14), ``goals``: goals in the
   goal buffer; empty for PPO; for ppo_rnd the intrinsic columns are RND's raw and normalised reward;
 * ``wall_time_s``: training wall time of the run so far (summed over resumed sessions; the time between
-  the last checkpoint and a crash is not counted, those steps are redone); ``fps``: steps/s of that rollout.
+  the last checkpoint and a crash is not counted, those steps are redone); ``fps``: steps/s of that rollout (PPO: its
+  collection, the update excluded; A2C and DQN: the steps since the previous row, their updates included).
 
 Checkpoints. Every ``--checkpoint-freq`` env steps (at the start of the next rollout, after the PPO update
 and the curiosity update, where the whole training state is consistent) and at the end, the run writes
@@ -42,7 +43,8 @@ continues from its newest complete checkpoint (``load(..., env=...)`` + ``learn(
 and finished runs are skipped; a larger ``--timesteps`` extends finished runs. On resumption the envs are
 fresh (seeded with ``seed + steps``): episodes in progress at the checkpoint are not finished, so the
 continuation is statistically, not bit-for-bit, the uninterrupted run; a resumed DQN run starts with an empty replay
-buffer (not checkpointed: ~600 MB) and makes no gradient step until it has refilled ``learning_starts`` steps of it. A checkpoint written with other
+buffer (not checkpointed: ~600 MB) and makes no gradient step until it holds ``learning_starts`` transitions again (the
+agent acting with its own policy meanwhile). A checkpoint written with other
 settings (env, n_envs, PPO or curiosity settings) is refused; ``--restart`` discards it.
 
 Stopping once solved. With ``--stop-at-threshold`` a run ends at the first rollout end where it reaches the
@@ -347,7 +349,7 @@ class Run:
         steps = int(model.num_timesteps)
         t0 = time.perf_counter()
         buf = io.BytesIO()
-        model.save(buf)
+        model.save(buf, exclude=["train"] if "train" in vars(model) else None)  # refill_before_training's gate stays out
         atomic_write_bytes(self.ckpt_dir / f"model_{steps}.zip", buf.getvalue())
         if self.algo in SUM_ALGOS:  # a plain SB3 model file does not hold the wrapper's curiosity module
             module_buf = io.BytesIO()
@@ -466,8 +468,9 @@ class Run:
             atomic_write_bytes(self.csv_path, csv_bytes(self.rows))  # drop rows written after the checkpoint
             print(f"[{self.name}] resuming from {model_path} ({steps} steps, {self.episodes} episodes)", flush=True)
             if isinstance(model, DQN):  # the replay buffer (~600 MB) is not checkpointed: refill it before learning on
-                model.learning_starts = steps + int(model_settings(self.args, self.algo).get("learning_starts", 100))
-                print(f"[{self.name}] the replay buffer starts empty: no gradient step before {model.learning_starts} steps", flush=True)
+                refill_before_training(model)
+                print(f"[{self.name}] the replay buffer starts empty: no gradient step until it holds "
+                      f"{model.learning_starts} transitions (the agent acts with its policy meanwhile)", flush=True)
             remaining, reset = self.args.timesteps - steps, False
         else:
             if self.csv_path.exists():
@@ -544,6 +547,18 @@ def list_checkpoints(ckpt_dir: pathlib.Path) -> list[tuple[int, pathlib.Path]]:
             if m:
                 out.append((int(m.group(1)), f))
     return sorted(out)
+
+
+def refill_before_training(model: Any) -> None:
+    """A resumed DQN's replay buffer starts empty: its gradient steps wait until the buffer again holds
+    ``learning_starts`` transitions, while the agent keeps acting with its own (epsilon-greedy) policy."""
+    train = model.train
+
+    def train_once_refilled(gradient_steps: int, batch_size: int = 100) -> None:
+        if model.replay_buffer.size() * model.n_envs >= model.learning_starts:
+            train(gradient_steps, batch_size)
+
+    model.train = train_once_refilled
 
 
 def ppo_settings(args: argparse.Namespace) -> dict[str, Any]:

@@ -7,7 +7,7 @@ training started) and ``rollout/ep_rew_max`` (the best episode return so far). W
 callback logs the best return alone.
 
 Episodes are Monitor's (``info["episode"]``): a whole game, not a life, when SB3's ``AtariWrapper`` ends an
-"episode" at each life lost. The counts live in the callback: a resumed run starts them afresh.
+"episode" at each life lost; without a ``Monitor`` (``make_vec_env`` and the zoo add one) nothing is counted. The counts live in the callback: a resumed run starts them afresh.
 """
 
 from __future__ import annotations
@@ -45,6 +45,8 @@ class RoomInfoWrapper(gym.Wrapper):
         super().__init__(env)
         if not hasattr(env.unwrapped, "ale"):
             raise TypeError(f"RoomInfoWrapper needs an ale-py env, got {type(env.unwrapped).__name__}")
+        if ram_index is not None and (isinstance(ram_index, bool) or not isinstance(ram_index, (int, np.integer))):
+            raise ValueError(f"ram_index must be an integer in [0, 127], got {ram_index!r}")
         if ram_index is None:
             game = atari_game(env)
             if game not in ROOM_RAM_INDEX:
@@ -90,7 +92,8 @@ class ExplorationCallback(BaseCallback):
         self._current: list[set[int]] = []
 
     def _on_training_start(self) -> None:
-        self._current = [set() for _ in range(self.training_env.num_envs)]
+        if len(self._current) != self.training_env.num_envs:  # a continued learn() keeps the episodes in progress
+            self._current = [set() for _ in range(self.training_env.num_envs)]
 
     def _on_step(self) -> bool:
         for i, info in enumerate(self.locals["infos"]):

@@ -447,7 +447,7 @@ def test_ppo_sum_resumes_with_its_module(se, tmp_path):
 
 
 @pytest.mark.parametrize("algo", ["a2c_sum", "dqn_sum"])
-def test_other_learners_run_with_their_zoo_settings_and_resume(se, tmp_path, algo):
+def test_other_learners_run_with_their_zoo_settings_and_resume(se, tmp_path, algo, capsys):
     """a2c_sum / dqn_sum (the paper's Fig. 6): SB3's A2C / DQN with the settings of sb3_gocu/hyperparams/<a2c|dqn>.yml on
     the sum-mode wrapper; one CSV row per PPO rollout's steps although their rollouts are shorter; a resumed DQN waits
     for its emptied replay buffer to refill before its next gradient step."""
@@ -478,10 +478,22 @@ def test_other_learners_run_with_their_zoo_settings_and_resume(se, tmp_path, alg
     se.main(tiny_args(out, 3072, *extra))
     rows = read(out / f"{algo}_seed0.csv")
     assert int(rows[-1]["steps"]) >= 3072 and len(rows) == 6
-    if dqn:
-        resumed = int(last.stem.split("_")[1])
-        final = max(ckpt.glob("model_*.zip"), key=lambda p: int(p.stem.split("_")[1]))
-        assert DQN.load(final).learning_starts == resumed + 256
+    if dqn:  # the resumed run refilled its buffer before its next gradient step
+        assert "the replay buffer starts empty" in capsys.readouterr().out
+
+
+def test_refill_before_training_holds_the_gradient_steps(se):
+    """A resumed DQN trains only once its emptied replay buffer holds learning_starts transitions again."""
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.env_util import make_vec_env
+
+    model = DQN("MlpPolicy", make_vec_env("CartPole-v1", n_envs=2, seed=0), learning_starts=64, buffer_size=1000, seed=0)
+    calls = []
+    model.train = lambda gradient_steps, batch_size=100: calls.append(model.replay_buffer.size() * model.n_envs)
+    se.refill_before_training(model)
+    model.num_timesteps = 10_000  # as after a resumption: past learning_starts, the buffer empty
+    model.learn(200, reset_num_timesteps=False)
+    assert calls and min(calls) >= 64
 
 
 def test_ppo_rnd_runs_and_resumes_with_its_rnd_state(se, tmp_path):

@@ -260,3 +260,5 @@ def test_large_images_are_kept_as_block_means(layout):
     assert raw.shape == (2,) and mod.memory.size == 2 and mod.memory.observations.shape[1:] == adapter.raw_shape
     for side, f in ((32, 1), (64, 1), (65, 2), (210, 4)):
         assert ObservationAdapter(spaces.Box(0, 255, (side, side, 3), np.uint8)).image_downsample == f
+    with pytest.raises(ValueError, match="a 300x2 image would keep no pixel"):
+        ObservationAdapter(spaces.Box(0, 255, (300, 2), np.uint8))

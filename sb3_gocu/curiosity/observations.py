@@ -98,6 +98,10 @@ class ObservationAdapter:
                 c = self.image_channels
             #: the block side images are averaged over (1: kept as they are)
             self.image_downsample = -(-max(h, w) // MAX_IMAGE_SIDE)
+            if min(h, w) < self.image_downsample:
+                raise ValueError(f"observation_space: a {h}x{w} image would keep no pixel of its shorter side once averaged "
+                                 f"over {self.image_downsample}x{self.image_downsample} blocks (images longer than "
+                                 f"{MAX_IMAGE_SIDE} pixels are): give GoCu images at least that many pixels a side")
             h, w = h // self.image_downsample, w // self.image_downsample
             self.input_shape: tuple[int, ...] = (c, h, w)
         else:

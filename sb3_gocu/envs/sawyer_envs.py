@@ -7,11 +7,12 @@ Each task is a Meta-World v3 task (MT1: 50 fixed variations of object and goal p
 each reset picks one at random). The agent sees a 32x32 RGB frame from a fixed camera that shows the gripper, the
 objects and the goal; its action is Meta-World's (hand displacement x, y, z and gripper effort, each in [-1, 1]).
 The reward is 1 at a step where Meta-World's success test holds, else 0; ``info["distance"]`` is the task's distance
-(docs/environments.md), ``info["is_success"]`` the success test, ``info["dense_reward"]`` Meta-World's own reward.
+(docs/environments.md), ``info["is_success"]`` the success test, ``info["dense_reward"]`` Meta-World's own shaped
+reward (with two pucks: minus the sum of their distances to their goals), for reference only.
 
 Rendering cost. Meta-World's Sawyer scene holds about 46,000 mesh vertices, and with Mesa's software renderer a
 32x32 frame of it costs far more than the physics. Frames are therefore drawn from a copy of the model whose meshes
-are simplified by vertex clustering (``mesh_cell``, 1 cm: half of what a 32x32 pixel covers here), the parts of the
+are simplified by vertex clustering (:attr:`SawyerTask.mesh_cell`, 1-2 cm: what a 32x32 pixel covers here), the parts of the
 robot the camera never shows are left out (:attr:`SawyerTask.hidden_bodies`), and the copy is posed from the
 simulation's state before each frame; shadows, reflections and multisampling are off. The simulation itself runs on
 Meta-World's own model. Frames differ from those of the whole scene by about 1/255 on average at most
@@ -38,6 +39,7 @@ try:
     import cv2
     import metaworld
     import mujoco
+    from scipy.spatial.transform import Rotation
 except ModuleNotFoundError as e:  # the [robotics] extra brings them
     raise missing_extra(e, "sb3_gocu.envs.sawyer_envs (the GoCu/VisualSawyer* ids)", "robotics") from e
 
@@ -80,12 +82,15 @@ class SawyerTask:
     :param camera: free camera: ``lookat`` (3 floats), ``distance``, ``azimuth``, ``elevation``
     :param hidden_bodies: bodies left out of the frames: those the camera never shows, wherever the hand goes in its
         workspace (:func:`visible_bodies`; ``tests/test_sawyer_envs.py`` checks it)
+    :param mesh_cell: vertex-clustering cell of the drawn meshes, metres: 2 cm from the table's far side, where the
+        arm is small in the frame; 1 cm from above the door, where it is large
     """
 
     metaworld_name: str
     distance: Callable[[Any], float]
     camera: dict[str, Any]
     hidden_bodies: tuple[str, ...] = ()
+    mesh_cell: float = 0.02
 
 
 #: Looks at the table from the far side, down at 60 degrees: the gripper near the top edge, the objects' and the goals'
@@ -105,7 +110,7 @@ _UNSEEN_FROM_THE_TABLE = (*_UNSEEN, "right_l2", "right_l3")
 #: the registered tasks, by id
 SAWYER_TASKS: dict[str, SawyerTask] = {
     "GoCu/VisualSawyerReacher-v0": SawyerTask("reach-v3", _reach_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
-    "GoCu/VisualSawyerDoorHook-v0": SawyerTask("door-open-v3", _door_distance, DOOR_CAMERA, (*_UNSEEN, "RetainingWall")),
+    "GoCu/VisualSawyerDoorHook-v0": SawyerTask("door-open-v3", _door_distance, DOOR_CAMERA, (*_UNSEEN, "RetainingWall"), 0.01),
     "GoCu/VisualSawyerPusher-v0": SawyerTask("push-v3", _object_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
     "GoCu/VisualSawyerPickAndPlace-v0": SawyerTask("pick-place-v3", _object_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
     # not a Meta-World task: built here on push-v3's scene (TwoPuckPushEnv)
@@ -121,6 +126,8 @@ def add_second_puck(spec: Any) -> None:
     body.add_freejoint(name="obj2joint")
     body.explicitinertial = True
     body.mass = 0.75
+    body.ipos = [0.0, 0.0, 0.0]  # the centre of mass at the puck's centre (unset, it is not)
+    body.iquat = [1.0, 0.0, 0.0, 0.0]
     body.inertia = [8.80012e-04] * 3
     body.add_geom(
         name="obj2Geom", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.02, 0.02, 0], rgba=[0.1, 0.2, 1, 1],
@@ -168,7 +175,8 @@ class TwoPuckPushEnv(metaworld.envs.SawyerPushEnvV3):
         return np.hstack([self.get_body_com("obj"), self.get_body_com("obj2")])
 
     def _get_quat_objects(self) -> np.ndarray:
-        return np.hstack([super()._get_quat_objects(), np.array([1.0, 0.0, 0.0, 0.0])])
+        second = Rotation.from_matrix(self.data.geom("obj2Geom").xmat.reshape(3, 3)).as_quat()
+        return np.hstack([super()._get_quat_objects(), second])
 
     @property
     def _target_site_config(self) -> list[tuple[str, np.ndarray]]:
@@ -316,7 +324,7 @@ class SceneRenderer:
         d.mocap_pos[:] = data.mocap_pos
         d.mocap_quat[:] = data.mocap_quat
         mujoco.mj_kinematics(m, d)
-        d.site_xpos[:] = data.site_xpos  # sites Meta-World places in data directly (its goal markers)
+        mujoco.mj_camlight(m, d)  # the scene's lights follow their bodies (mj_kinematics leaves them unplaced)
         self.renderer.update_scene(d, camera=self.camera)
         return self.renderer.render()
 
@@ -332,7 +340,7 @@ class VisualSawyer(gym.Env):
     :param image_size: frame side, pixels
     :param supersample: draw at ``image_size * supersample`` pixels, then average down (anti-aliasing: the 4 cm
         puck stays visible)
-    :param mesh_cell: vertex-clustering cell of the drawn meshes, metres (0: Meta-World's meshes)
+    :param mesh_cell: vertex-clustering cell of the drawn meshes, metres (0: Meta-World's meshes; default: the task's)
     :param render_mode: ``"rgb_array"``: ``render()`` returns the observation frame
     """
 
@@ -343,7 +351,7 @@ class VisualSawyer(gym.Env):
         task: SawyerTask,
         image_size: int = 32,
         supersample: int = 2,
-        mesh_cell: float = 0.01,
+        mesh_cell: Optional[float] = None,
         render_mode: Optional[str] = None,
     ) -> None:
         if image_size < 8:
@@ -360,7 +368,8 @@ class VisualSawyer(gym.Env):
         self.sim = TwoPuckPushEnv() if two_pucks else metaworld.env_dict.ALL_V3_ENVIRONMENTS[task.metaworld_name]()
         self._variations: list[Any] = []  # Meta-World tasks, or two-puck layouts
         self.scene = SceneRenderer(
-            self.sim.model_name, self.image_size * self.supersample, task.camera, mesh_cell, task.hidden_bodies,
+            self.sim.model_name, self.image_size * self.supersample, task.camera,
+            task.mesh_cell if mesh_cell is None else mesh_cell, task.hidden_bodies,
             add_second_puck if two_pucks else None,
         )
         self.observation_space = spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)

@@ -76,6 +76,8 @@ def innermost(venv: Any) -> Any:
 
 def zoo_manager(algo: str, env_id: str, seed: int, hyperparams: dict[str, Any] | None = None) -> Any:
     """rl-zoo3's ExperimentManager for ``algo`` on ``env_id`` with our YAML file (logs in a temporary folder)."""
+    import atexit
+    import shutil
     import tempfile
 
     from rl_zoo3.exp_manager import ExperimentManager
@@ -83,8 +85,10 @@ def zoo_manager(algo: str, env_id: str, seed: int, hyperparams: dict[str, Any] |
     from sb3_gocu.zoo import hyperparams_dir, register_zoo
 
     register_zoo()
+    logs = tempfile.mkdtemp(prefix="throughput_")
+    atexit.register(shutil.rmtree, logs, True)
     return ExperimentManager(
-        argparse.Namespace(), algo, env_id, tempfile.mkdtemp(prefix="throughput_"), eval_freq=-1, verbose=0, seed=seed,
+        argparse.Namespace(), algo, env_id, logs, eval_freq=-1, verbose=0, seed=seed,
         config=str(hyperparams_dir() / f"{algo}.yml"), hyperparams=hyperparams or {},
     )
 

@@ -29,6 +29,8 @@ try:
 except ModuleNotFoundError as e:  # the [mujoco] extra brings them (gymnasium[mujoco]: mujoco, imageio, ...)
     raise missing_extra(e, "sb3_gocu.envs.mujoco_envs (GoCu/VisualReacher-v0, GoCu/VisualPusher-v0)", "mujoco") from e
 
+from sb3_gocu.envs.small_frames import free_camera, small_frame_renderer  # noqa: E402
+
 __all__ = [
     "PUSHER_CAMERA",
     "REACHER_CAMERA",
@@ -120,24 +122,9 @@ class SparseVisualMujoco(gym.Wrapper):
             low=0, high=255, shape=(self.image_size, self.image_size, 3), dtype=np.uint8
         )
 
-        base = env.unwrapped
-        model = base.model
-        # These must be set before the MjrContext is created (it copies them).
-        model.vis.quality.shadowsize = 0
-        model.vis.quality.offsamples = 0
         render_px = self.image_size * self.supersample
-        model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), render_px)
-        model.vis.global_.offheight = max(int(model.vis.global_.offheight), render_px)
-        self._renderer: Optional[mujoco.Renderer] = mujoco.Renderer(model, height=render_px, width=render_px)
-        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
-
-        self._camera = mujoco.MjvCamera()
-        self._camera.type = mujoco.mjtCamera.mjCAMERA_FREE
-        self._camera.lookat[:] = np.asarray(camera["lookat"], dtype=np.float64)
-        self._camera.distance = float(camera["distance"])
-        self._camera.azimuth = float(camera["azimuth"])
-        self._camera.elevation = float(camera["elevation"])
+        self._renderer: Optional[mujoco.Renderer] = small_frame_renderer(env.unwrapped.model, render_px)
+        self._camera = free_camera(camera)
 
     def _render_obs(self) -> np.ndarray:
         assert self._renderer is not None, "The environment was closed"

@@ -43,6 +43,8 @@ try:
 except ModuleNotFoundError as e:  # the [robotics] extra brings them
     raise missing_extra(e, "sb3_gocu.envs.sawyer_envs (the GoCu/VisualSawyer* ids)", "robotics") from e
 
+from sb3_gocu.envs.small_frames import free_camera, small_frame_renderer  # noqa: E402
+
 __all__ = ["N_VARIATIONS", "SAWYER_TASKS", "SawyerTask", "TwoPuckPushEnv", "VisualSawyer", "make_visual_sawyer"]
 
 #: object and goal layouts of a task (Meta-World's MT1 count), drawn from the env's seed
@@ -301,17 +303,8 @@ class SceneRenderer:
             body = self.model.body(name).id  # a KeyError names a body the scene does not have
             self.model.geom_rgba[self.model.geom_bodyid == body, 3] = 0.0  # MuJoCo skips fully transparent geoms
         self.data = mujoco.MjData(self.model)
-        self.model.vis.quality.shadowsize = 0  # set before the renderer's context copies them
-        self.model.vis.quality.offsamples = 0
-        self.renderer = mujoco.Renderer(self.model, height=size, width=size)
-        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
-        self.camera = mujoco.MjvCamera()
-        self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE
-        self.camera.lookat[:] = np.asarray(camera["lookat"], dtype=np.float64)
-        self.camera.distance = float(camera["distance"])
-        self.camera.azimuth = float(camera["azimuth"])
-        self.camera.elevation = float(camera["elevation"])
+        self.renderer = small_frame_renderer(self.model, size)
+        self.camera = free_camera(camera)
 
     def render(self, model: Any, data: Any) -> np.ndarray:
         """A frame of the simulation's ``(model, data)`` (same MJCF): its state and the model fields Meta-World moves

@@ -163,7 +163,6 @@ def test_plot_names_the_env_of_a_results_folder(plot_curves, two_runs, tmp_path)
 
 def test_resume_after_crash(se, tmp_path, monkeypatch):
     """A run killed after its 2048-step checkpoint continues from there on the same command."""
-    th.set_num_threads(1)
     out = tmp_path / "crash"
     original = se.SampleEfficiencyCallback._on_rollout_end
 
@@ -204,7 +203,6 @@ def test_stop_at_threshold(se, tmp_path):
     command without it continues the run to --timesteps."""
     from sb3_gocu import PPO_GoCu
 
-    th.set_num_threads(1)
     out = tmp_path / "stop"
     args = tiny_args(out, 3072, "--algos", "ppo_gocu", "--threshold", "0.0", "--min-window", "1")
     se.main(args + ["--stop-at-threshold"])
@@ -431,7 +429,6 @@ def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_ti
 
 def test_ppo_sum_resumes_with_its_module(se, tmp_path):
     """ppo_sum (plain PPO on the sum-mode wrapper) checkpoints its curiosity module beside the model and resumes it."""
-    th.set_num_threads(1)
     out = tmp_path / "sum"
     se.main(tiny_args(out, 2048, "--algos", "ppo_sum"))
     rows = read(out / "ppo_sum_seed0.csv")
@@ -455,7 +452,6 @@ def test_other_learners_run_with_their_zoo_settings_and_resume(se, tmp_path, alg
 
     from sb3_gocu import PaperCNN
 
-    th.set_num_threads(1)
     out = tmp_path / algo
     dqn = algo.startswith("dqn")
     extra = ["--algos", algo, "--model-kwargs", json.dumps({"learning_starts": 256, "buffer_size": 4096} if dqn else {})]
@@ -499,7 +495,6 @@ def test_refill_before_training_holds_the_gradient_steps(se):
 def test_ppo_rnd_runs_and_resumes_with_its_rnd_state(se, tmp_path):
     """ppo_rnd (the RND peer, benchmarks/peers/rnd.py): its intrinsic columns are RND's, and a resumed run continues
     from the checkpoint's RND statistics and predictor."""
-    th.set_num_threads(1)
     out = tmp_path / "rnd"
     se.main(tiny_args(out, 2048, "--algos", "ppo_rnd"))
     rows = read(out / "ppo_rnd_seed0.csv")
@@ -514,7 +509,6 @@ def test_ppo_rnd_runs_and_resumes_with_its_rnd_state(se, tmp_path):
 
 def test_constant_curiosity_pays_one_value(se, tmp_path):
     """--constant-curiosity: every paid r_gc of a rollout is one value (the running mean), unpaid revisits 0."""
-    th.set_num_threads(1)
     out = tmp_path / "constant"
     seen = []
     original = se.replace_curiosity
@@ -553,7 +547,6 @@ def test_replace_curiosity_zero_and_negative(se, how):
 
     from sb3_gocu import PPO_GoCu
 
-    th.set_num_threads(1)
     model = PPO_GoCu("CnnPolicy", make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=4, seed=0), n_steps=128, seed=0, curiosity_kwargs=TINY_IMAGE_CURIOSITY)
     scorer = model.curiosity.scorer
     true, seen = [], []
@@ -616,7 +609,6 @@ def test_ablations_summary_counts_a_miss_at_the_budget(tmp_path):
 def test_final_distance_and_success_on_a_sawyer_task(se, tmp_path):
     """On a task that reports info['distance'] (the Sawyer ids), the CSV's final_distance is the mean distance at the
     episodes' last steps, and the summary shows it (Table 2's measure)."""
-    th.set_num_threads(1)
     out = tmp_path / "sawyer"
     args = tiny_args(out, 1024, "--algos", "ppo")
     args[args.index("GoCu/DoorKey-5x5-v0")] = "GoCu/VisualSawyerReacher-v0"

@@ -11,7 +11,6 @@ from sb3_gocu import PPO_GoCu
 
 
 def test_quickstart_trains_saves_and_evaluates(tmp_path, capsys):
-    th.set_num_threads(1)
     quickstart = load_script("quickstart", "examples/quickstart.py")
     save = tmp_path / "gocu_doorkey5"
     model, returns = quickstart.main(["--timesteps", "2048", "--eval-episodes", "3", "--save", str(save)])

@@ -148,26 +148,31 @@ def test_config_files_hold_the_paper_values():
         assert gocu[env_id]["curiosity_kwargs"]["image_channels"] == 1
 
 
+def _setup(algo, env_id, conf, tmp_path):
+    """The zoo's ExperimentManager for ``<conf>.yml``'s entry of ``env_id`` (2 envs, seed 0) and the model it builds."""
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    manager = ExperimentManager(
+        argparse.Namespace(), algo, env_id, str(tmp_path), eval_freq=-1, hyperparams={"n_envs": 2},
+        config=str(HYPERPARAMS / f"{conf}.yml"), verbose=0, seed=0,
+    )
+    with contextlib.redirect_stdout(io.StringIO()):
+        model, _ = manager.setup_experiment()
+    return manager, model
+
+
 @pytest.mark.parametrize("conf", ["ppo_gocu", "ppo", "ppo_dropin"])
 def test_every_entry_builds_its_model(conf, tmp_path):
     """The zoo's ExperimentManager builds each entry's env and model (n_envs overridden to 2)."""
-    import torch as th
-    from rl_zoo3.exp_manager import ExperimentManager
     from stable_baselines3 import PPO
 
     from sb3_gocu import ExplorationCallback, GoCuCallback, PaperCNN, PPO_GoCu, RoomInfoWrapper
     from sb3_gocu.wrappers import find_gocu_module
 
     register_zoo()
-    th.set_num_threads(1)
     algo = "ppo" if conf == "ppo_dropin" else conf
     for env_id in ENV_IDS:
-        manager = ExperimentManager(
-            argparse.Namespace(), algo, env_id, str(tmp_path), eval_freq=-1, hyperparams={"n_envs": 2},
-            config=str(HYPERPARAMS / f"{conf}.yml"), verbose=0, seed=0,
-        )
-        with contextlib.redirect_stdout(io.StringIO()):
-            model, _ = manager.setup_experiment()
+        manager, model = _setup(algo, env_id, conf, tmp_path)
         try:
             assert type(model) is (PPO_GoCu if conf == "ppo_gocu" else PPO)
             atari = env_id.startswith("ALE/")
@@ -198,8 +203,6 @@ def test_every_entry_builds_its_model(conf, tmp_path):
 def test_other_learners_files_build_plain_and_dropin(algo, tmp_path):
     """a2c.yml / dqn.yml (the paper's Fig. 6) build SB3's A2C / DQN on the paper's CNN; their _dropin files hold the
     same settings plus the sum-mode wrapper and the GoCu callback."""
-    import torch as th
-    from rl_zoo3.exp_manager import ExperimentManager
     from stable_baselines3 import A2C, DQN
 
     from sb3_gocu import GoCuCallback, PaperCNN
@@ -213,14 +216,8 @@ def test_other_learners_files_build_plain_and_dropin(algo, tmp_path):
         assert wrapper == {"sb3_gocu.GoCuVecEnvWrapper": {"mode": "sum", "intrinsic_coef": 0.25}}
         assert entry.pop("callback") == "sb3_gocu.GoCuCallback" and entry == plain[env_id]
     assert plain["GoCu/DoorKey-8x8-v0"]["n_timesteps"] == 1e6  # the budget of the paper's Fig. 6 runs here
-    th.set_num_threads(1)
     for conf in (algo, f"{algo}_dropin"):
-        manager = ExperimentManager(
-            argparse.Namespace(), algo, DOORKEY, str(tmp_path), eval_freq=-1, hyperparams={"n_envs": 2},
-            config=str(HYPERPARAMS / f"{conf}.yml"), verbose=0, seed=0,
-        )
-        with contextlib.redirect_stdout(io.StringIO()):
-            model, _ = manager.setup_experiment()
+        manager, model = _setup(algo, DOORKEY, conf, tmp_path)
         try:
             assert type(model) is {"a2c": A2C, "dqn": DQN}[algo]
             extractor = model.q_net.features_extractor if algo == "dqn" else model.policy.features_extractor

@@ -24,7 +24,7 @@ from sb3_gocu.checkpoints import atomic_write
 #: a run's CSV columns (their meaning: ``sample_efficiency.py``'s docstring)
 COLUMNS = (
     "algo", "seed", "steps", "episodes", "window_episodes", "mean_return", "success_rate", "key_rate", "door_rate",
-    "final_distance", "final_success",
+    "final_distance", "final_success", "max_return", "rooms_mean", "rooms_total",
     "intrinsic_mean", "intrinsic_std", "intrinsic_norm_mean", "goals", "wall_time_s", "fps",
 )
 
@@ -117,17 +117,27 @@ def steps_to_threshold(rows: Sequence[dict[str, Any]], threshold: float, min_win
     return None
 
 
+def best_mean_return(rows: Sequence[dict[str, Any]], min_window: int) -> float:
+    """The best windowed mean return of a run (rows whose window holds >= min_window episodes; nan if none does)."""
+    means = [r["mean_return"] for r in rows if r["window_episodes"] >= min_window]
+    return max(means) if means else float("nan")
+
+
 def _pm(values: Sequence[float], fmt: str) -> str:
     v = np.asarray(values, dtype=np.float64)
-    if len(v) == 0:
+    if len(v) == 0 or np.isnan(v).all():
         return "-"
     return f"{format(v.mean(), fmt)} +- {format(v.std(), fmt)}"
 
 
-def summarize(out: pathlib.Path, threshold: float, min_window: int, order: Sequence[str] = ()) -> tuple[str, dict[str, Any]]:
+def summarize(
+    out: pathlib.Path, threshold: float, min_window: int, order: Sequence[str] = (), atari: bool = False
+) -> tuple[str, dict[str, Any]]:
     """Summary table of the CSVs in ``out`` (markdown) and the figures behind it.
 
     :param order: algorithms in the order their rows come first (the others follow, sorted)
+    :param atari: add Table 3's measures: the best windowed mean return, the best episode return and, where the env
+        reports rooms (``info["room"]``), the rooms per episode and in total
     """
     runs: dict[str, dict[int, list[dict[str, Any]]]] = {}
     for path in sorted(out.glob("*_seed*.csv")):
@@ -142,8 +152,9 @@ def summarize(out: pathlib.Path, threshold: float, min_window: int, order: Seque
     finals = any(math.isfinite(r[-1].get("final_distance", float("nan"))) for a in runs.values() for r in a.values())
     lines = [
         f"| algo | seeds | final steps | steps to mean return >= {threshold} | final success rate | final mean return | wall time (min) |"
-        + (" final distance | success at the last step |" if finals else ""),
-        "| --- | --- | --- | --- | --- | --- | --- |" + (" --- | --- |" if finals else ""),
+        + (" final distance | success at the last step |" if finals else "")
+        + (" best mean return | best episode return | rooms per episode (last 100) | rooms visited |" if atari else ""),
+        "| --- | --- | --- | --- | --- | --- | --- |" + (" --- | --- |" if finals else "") + (" --- | --- | --- | --- |" if atari else ""),
     ]
     figures: dict[str, Any] = {}
     for algo in order:
@@ -165,6 +176,10 @@ def summarize(out: pathlib.Path, threshold: float, min_window: int, order: Seque
             f"{_pm([r['wall_time_s'] / 60 for r in final], '.1f')} |"
             + (f" {_pm([r.get('final_distance', float('nan')) for r in final], '.3f')} |"
                f" {_pm([r.get('final_success', float('nan')) for r in final], '.3f')} |" if finals else "")
+            + (f" {_pm([best_mean_return(r, min_window) for r in per_seed.values()], '.1f')} |"
+               f" {_pm([r.get('max_return', float('nan')) for r in final], '.1f')} |"
+               f" {_pm([r.get('rooms_mean', float('nan')) for r in final], '.2f')} |"
+               f" {_pm([r.get('rooms_total', float('nan')) for r in final], '.1f')} |" if atari else "")
         )
         figures[algo] = {
             "seeds": seeds,

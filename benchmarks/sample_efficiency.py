@@ -12,6 +12,15 @@ PPO_GoCu's CnnPolicy picks it itself). PPO_GoCu uses the module's defaults (the 
 ``a2c`` / ``dqn`` take the settings of ``sb3_gocu/hyperparams/<a2c|dqn>.yml`` for the env (the zoo launcher's files),
 ``a2c_sum`` / ``dqn_sum`` the same on ``GoCuVecEnvWrapper(mode="sum")`` with ``GoCuCallback``.
 
+Atari (``--zoo``, the default for ``ALE/...`` ids): ``ppo`` and ``ppo_gocu`` are built as the zoo launcher builds them
+from ``sb3_gocu/hyperparams/<algo>.yml`` (AtariWrapper, 4 stacked frames, 8 envs, the schedules, sigma and the
+curiosity settings of the file; ``--curiosity-kwargs``, ``--goal-strategy`` and ``--n-goals`` are merged into the
+file's ``curiosity_kwargs``; ``--n-envs``, ``--n-steps``, ``--batch-size`` and ``--intrinsic-coef`` do not apply), and the
+summary adds Table 3's measures: the best 100-episode mean return, the best episode return and the rooms visited::
+
+    python benchmarks/sample_efficiency.py --env ALE/MontezumaRevenge-v5 --algos ppo ppo_gocu --seeds 0 1 \\
+        --timesteps 5000000 --checkpoint-freq 200000 --out benchmarks/out/atari/montezuma
+
 Runs execute one at a time (seed-major: seed 0 of every algo, then seed 1, ...), each writing
 ``<out>/<algo>_seed<seed>.csv`` with one row per rollout end (A2C's and DQN's rollouts are shorter: one row at the
 first rollout end past each multiple of a PPO rollout's steps, ``--n-envs`` x ``--n-steps``):
@@ -25,6 +34,10 @@ first rollout end past each multiple of a PPO rollout's steps, ``--n-envs`` x ``
 * ``final_distance`` / ``final_success``: over the same episodes, the mean of ``info["distance"]`` at their last step
   (the Sawyer and MuJoCo ids: Table 2's final distance) and the fraction whose last step has ``info["is_success"]``;
   empty where the env reports neither;
+* ``max_return``: the best episode return so far; ``rooms_mean`` / ``rooms_total`` (where the env reports
+  ``info["room"]``: Montezuma's Revenge through ``sb3_gocu.RoomInfoWrapper``): rooms visited per episode over the same
+  episodes, and distinct rooms visited so far (the exploration measures of ``sb3_gocu.ExplorationCallback``, kept in
+  the checkpoint so that a resumed run continues its counts);
 * ``intrinsic_mean`` / ``intrinsic_std``: mean and std of the raw r_gc (eq 13, ``infos["gocu_raw_reward"]``)
   over the rollout's steps, ``intrinsic_norm_mean``: mean of the normalised r_gc (eq 14), ``goals``: goals in the
   goal buffer; empty for PPO; for ppo_rnd the intrinsic columns are RND's raw and normalised reward;
@@ -63,6 +76,7 @@ seeds, machine and threads. ``--summary-only`` re-summarises the CSVs in ``--out
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
 import math
@@ -91,6 +105,7 @@ from sb3_gocu.wrappers import find_gocu_module
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from peers.rnd import PPO_RND  # noqa: E402
+from throughput import zoo_manager  # noqa: E402
 from run_records import (  # noqa: E402, F401  (re-exported: ablations.py, the probes and the tests use them from here)
     COLUMNS,
     atomic_write_bytes,
@@ -137,6 +152,7 @@ class SampleEfficiencyCallback(BaseCallback):
         self._sum = self._sq = self._norm = 0.0
         self._count = 0
         self._infos: list[list[dict]] = []
+        self._rooms: list[set[int]] = []  # rooms of each env's episode in progress (info["room"])
         self._t_rollout = time.perf_counter()
         self._steps_rollout = 0
         self._stop = False
@@ -166,10 +182,16 @@ class SampleEfficiencyCallback(BaseCallback):
         if self._stop:
             return False
         infos = self.locals["infos"]
-        for info in infos:
+        if len(self._rooms) != len(infos):
+            self._rooms = [set() for _ in infos]
+        for rooms, info in zip(self._rooms, infos):
+            if "room" in info:  # RoomInfoWrapper (Montezuma's Revenge)
+                rooms.add(int(info["room"]))
             ep = info.get("episode")
-            if ep is not None:
-                self.run.add_episode(float(ep["r"]), info.get("task_phase"), info.get("distance"), info.get("is_success"))
+            if ep is not None:  # Monitor's end of a whole episode (a whole game on Atari)
+                self.run.add_episode(float(ep["r"]), info.get("task_phase"), info.get("distance"), info.get("is_success"),
+                                     set(rooms) if rooms else None)
+                rooms.clear()
         self._infos.append(infos)  # PPO_GoCu fills a step's gocu_* entries one step later (scoring in a worker thread)
         return True
 
@@ -211,7 +233,9 @@ class Run:
         self.out = pathlib.Path(args.out)
         self.csv_path = self.out / f"{self.name}.csv"
         self.ckpt_dir = self.out / "checkpoints" / self.name
-        rollout = args.n_envs * args.n_steps
+        #: with --zoo: the zoo file's entry for the env (its settings build the env and the model)
+        self.zoo = zoo_entry(algo, args.env) if args.zoo else None
+        rollout = self.zoo["n_envs"] * self.zoo["n_steps"] if self.zoo else args.n_envs * args.n_steps
         #: env steps between CSV rows: a PPO rollout (a row at every rollout end of PPO; at the first rollout end past
         #: each multiple for A2C's and DQN's shorter rollouts)
         self.row_every = rollout
@@ -222,6 +246,9 @@ class Run:
         self.window: deque = deque(maxlen=args.window)
         self.phases: deque = deque(maxlen=args.window)  # info["task_phase"] at episode ends (DoorKey ids)
         self.finals: deque = deque(maxlen=args.window)  # (info["distance"], info["is_success"]) at episode ends
+        self.episode_rooms: deque = deque(maxlen=args.window)  # rooms visited per episode (info["room"])
+        self.rooms: set[int] = set()  # every room visited so far
+        self.max_return = float("nan")  # the best episode return so far
         self.episodes = 0
         self.wall_before = 0.0
         self.session_start = time.perf_counter()
@@ -236,8 +263,15 @@ class Run:
         self.stopped_at_threshold: int | None = None
 
     # ------------------------------------------------------------ recording
-    def add_episode(self, ret: float, phase: int | None = None, distance: float | None = None, success: bool | None = None) -> None:
+    def add_episode(
+        self, ret: float, phase: int | None = None, distance: float | None = None, success: bool | None = None,
+        rooms: set[int] | None = None,
+    ) -> None:
         self.window.append(ret)
+        self.max_return = ret if math.isnan(self.max_return) else max(self.max_return, ret)
+        if rooms:
+            self.episode_rooms.append(len(rooms))
+            self.rooms |= rooms
         if phase is not None:
             self.phases.append(int(phase))
         if distance is not None or success is not None:
@@ -265,6 +299,9 @@ class Run:
             "door_rate": float((ph >= 2).mean()) if len(ph) else float("nan"),
             "final_distance": float(np.mean(finals[:, 0])) if len(finals) else float("nan"),
             "final_success": float(np.mean(finals[:, 1])) if len(finals) else float("nan"),
+            "max_return": self.max_return,
+            "rooms_mean": float(np.mean(self.episode_rooms)) if self.episode_rooms else float("nan"),
+            "rooms_total": len(self.rooms) if self.rooms else float("nan"),
             "intrinsic_mean": intrinsic_mean,
             "intrinsic_std": intrinsic_std,
             "intrinsic_norm_mean": intrinsic_norm,
@@ -282,8 +319,9 @@ class Run:
             print(
                 f"[{self.name}] {steps:>9d}/{self.args.timesteps} steps  {self.episodes:6d} episodes  "
                 f"mean return {row['mean_return']:.3f}  success {row['success_rate']:.2f}  "
-                f"key {row['key_rate']:.2f}  door {row['door_rate']:.2f}  "
-                f"r_gc {intrinsic_mean:.4f}  {fps:5.0f} steps/s  {row['wall_time_s'] / 60:6.1f} min",
+                + (f"rooms {row['rooms_mean']:.1f} (total {len(self.rooms)})  best {self.max_return:g}  " if self.rooms
+                   else f"key {row['key_rate']:.2f}  door {row['door_rate']:.2f}  ")
+                + f"r_gc {intrinsic_mean:.4f}  {fps:5.0f} steps/s  {row['wall_time_s'] / 60:6.1f} min",
                 flush=True,
             )
 
@@ -296,6 +334,9 @@ class Run:
             "window": list(self.window),
             "phases": list(self.phases),
             "finals": [list(f) for f in self.finals],
+            "episode_rooms": list(self.episode_rooms),
+            "rooms": sorted(self.rooms),
+            "max_return": self.max_return,
             "wall_time_s": self.wall_time(),
             "rows": self.rows,
             "resumed_from": self.resumed_from,
@@ -353,6 +394,9 @@ class Run:
             self.window = deque(state["window"], maxlen=self.args.window)
             self.phases = deque(state.get("phases", []), maxlen=self.args.window)
             self.finals = deque([tuple(f) for f in state.get("finals", [])], maxlen=self.args.window)
+            self.episode_rooms = deque(state.get("episode_rooms", []), maxlen=self.args.window)
+            self.rooms = set(state.get("rooms", []))
+            self.max_return = float(state.get("max_return", float("nan")))
             self.episodes = int(state["episodes"])
             self.wall_before = float(state["wall_time_s"])
             self.resumed_from = list(state.get("resumed_from", []))
@@ -365,7 +409,12 @@ class Run:
     # ------------------------------------------------------------ training
     def make_env(self, seed: int, module_state: dict[str, Any] | None = None) -> Any:
         """The training env; for the SUM_ALGOS wrapped in ``GoCuVecEnvWrapper(mode="sum")`` (its module restored from
-        ``module_state`` when given)."""
+        ``module_state`` when given); with --zoo the env the zoo launcher builds (its wrappers, frame stack)."""
+        if self.zoo is not None:
+            manager = zoo_manager(self.algo, self.args.env, seed, zoo_overrides(self.args, self.algo, self.zoo))
+            with contextlib.redirect_stdout(io.StringIO()):  # the zoo prints the settings it read
+                _, manager.env_wrapper, _, manager.vec_env_wrapper = manager._preprocess_hyperparams(manager.read_hyperparameters()[0])
+                return manager.create_envs(manager.n_envs, no_log=True)
         env = make_vec_env(self.args.env, n_envs=self.args.n_envs, seed=seed)
         if self.algo not in SUM_ALGOS:
             return env
@@ -384,6 +433,10 @@ class Run:
 
     def build(self) -> Any:
         a = self.args
+        if self.zoo is not None:  # the model and env the zoo launcher builds
+            with contextlib.redirect_stdout(io.StringIO()):
+                model, _ = zoo_manager(self.algo, a.env, self.seed, zoo_overrides(a, self.algo, self.zoo)).setup_experiment()
+            return model
         ppo = ppo_settings(a)
         if self.algo in ("ppo", "ppo_sum"):
             return PPO("CnnPolicy", self.make_env(self.seed), seed=self.seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **ppo)
@@ -505,13 +558,28 @@ def ppo_settings(args: argparse.Namespace) -> dict[str, Any]:
     return {**PPO_SETTINGS, "n_steps": args.n_steps, "batch_size": args.batch_size}
 
 
-def zoo_settings(family: str, env: str) -> dict[str, Any]:
-    """The model keywords of ``env``'s entry in ``sb3_gocu/hyperparams/<family>.yml``: the entry less the launcher's
-    own keys, ``policy_kwargs`` left a string. :param family: ``a2c`` or ``dqn``"""
+def zoo_entry(family: str, env: str) -> dict[str, Any]:
+    """``env``'s entry in ``sb3_gocu/hyperparams/<family>.yml`` (the zoo launcher's file), as written.
+    :param family: ``ppo``, ``ppo_gocu``, ``a2c`` or ``dqn``"""
     entries = yaml.safe_load((HYPERPARAMS / f"{family}.yml").read_text())
     if env not in entries:
         raise SystemExit(f"{family}: sb3_gocu/hyperparams/{family}.yml has no entry for {env} (it has {sorted(entries)})")
-    return {k: v for k, v in entries[env].items() if k not in ZOO_KEYS}
+    return entries[env]
+
+
+def zoo_settings(family: str, env: str) -> dict[str, Any]:
+    """The model keywords of ``env``'s entry in ``sb3_gocu/hyperparams/<family>.yml``: the entry less the launcher's
+    own keys, ``policy_kwargs`` left a string. :param family: ``a2c`` or ``dqn``"""
+    return {k: v for k, v in zoo_entry(family, env).items() if k not in ZOO_KEYS}
+
+
+def zoo_overrides(args: argparse.Namespace, algo: str, entry: dict[str, Any]) -> dict[str, Any]:
+    """With --zoo: the zoo entry's settings the command changes (``--curiosity-kwargs``, ``--goal-strategy``,
+    ``--n-goals`` merged into a ppo_gocu entry's ``curiosity_kwargs``)."""
+    changed = curiosity_kwargs(args)
+    if algo != "ppo_gocu" or not changed:
+        return {}
+    return {"curiosity_kwargs": {**entry.get("curiosity_kwargs", {}), **changed}}
 
 
 def model_settings(args: argparse.Namespace, algo: str) -> dict[str, Any]:
@@ -533,6 +601,10 @@ def curiosity_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 def run_config(args: argparse.Namespace, algo: str, seed: int) -> dict[str, Any]:
     """What a checkpoint must agree with to be resumed (the step budget is not part of it: it can grow)."""
+    if args.zoo:
+        entry = {**zoo_entry(algo, args.env), **zoo_overrides(args, algo, zoo_entry(algo, args.env))}
+        entry.pop("n_timesteps", None)  # the budget is --timesteps
+        return json.loads(json.dumps({"algo": algo, "seed": seed, "env": args.env, "zoo": entry, "window": args.window}))
     key = "ppo" if algo.startswith("ppo") else "model"
     cfg: dict[str, Any] = {"algo": algo, "seed": seed, "env": args.env, "n_envs": args.n_envs, key: model_settings(args, algo), "window": args.window}
     if algo in CURIOUS:
@@ -545,8 +617,8 @@ def run_config(args: argparse.Namespace, algo: str, seed: int) -> dict[str, Any]
 
 def write_summary(args: argparse.Namespace, command: str) -> str:
     out = pathlib.Path(args.out)
-    table, _ = summarize(out, args.threshold, args.min_window, args.algos or ALGOS)
     cmds, machines, env = recorded(out)
+    table, _ = summarize(out, args.threshold, args.min_window, args.algos or ALGOS, atari=(env or args.env).startswith("ALE/"))
     seeds = sorted({int(m.group(1)) for p in out.glob("*_seed*.csv") if (m := re.search(r"_seed(\d+)\.csv$", p.name))})
     text = "\n".join(
         [
@@ -610,6 +682,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-steps", type=int, default=PPO_SETTINGS["n_steps"])
     p.add_argument("--batch-size", type=int, default=PPO_SETTINGS["batch_size"])
     p.add_argument("--model-kwargs", default="{}", help="JSON dict overriding the a2c / dqn settings of their zoo file (for tests)")
+    p.add_argument("--zoo", action=argparse.BooleanOptionalAction, default=None,
+                   help="build env and model as the zoo launcher does, from sb3_gocu/hyperparams/<algo>.yml (ppo and ppo_gocu; "
+                   "--n-envs, --n-steps, --batch-size and --intrinsic-coef then come from the file; default: for ALE/... ids)")
     p.add_argument("--print-every", type=int, default=10, help="print a progress line every this many rollouts")
     p.add_argument("--quiet", dest="verbose", action="store_false")
     return p
@@ -621,6 +696,9 @@ def main(argv: Sequence[str] | None = None) -> str:
     args = parser.parse_args(argv)
     args.env_given = args.env is not None
     args.env = args.env or "GoCu/DoorKey-8x8-v0"
+    args.zoo = args.env.startswith("ALE/") if args.zoo is None else args.zoo
+    if args.zoo and not set(args.algos) <= {"ppo", "ppo_gocu"}:
+        parser.error(f"--zoo runs ppo and ppo_gocu (their zoo files), got --algos {' '.join(args.algos)}")
     if args.keep_checkpoints < 1:
         parser.error("--keep-checkpoints must be >= 1")
     argv_list = list(sys.argv[1:] if argv is None else argv)

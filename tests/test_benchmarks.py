@@ -618,3 +618,28 @@ def test_final_distance_and_success_on_a_sawyer_task(se, tmp_path):
     assert int(last["window_episodes"]) == 4 * (1024 // 4 // 150)  # 4 envs of 256 steps, 150-step episodes
     assert 0.05 < float(last["final_distance"]) < 1.0 and float(last["final_success"]) == 0.0  # a random policy
     assert "final distance" in summary and f"{float(last['final_distance']):.3f}" in summary
+
+
+def test_atari_runs_take_the_zoo_settings_and_count_rooms(se, tmp_path):
+    """On an ALE id the runs are built as the zoo launcher builds them (8 envs, 4 stacked frames, the file's curiosity
+    settings with the command's merged in), the CSV counts the rooms of Montezuma's Revenge and the best episode, a
+    resumed run continues those counts, and the summary shows Table 3's measures."""
+    out = tmp_path / "atari"
+    args = ["--env", "ALE/MontezumaRevenge-v5", "--algos", "ppo_gocu", "--seeds", "0", "--out", str(out),
+            "--checkpoint-freq", "1024", "--curiosity-kwargs", '{"pretrain_steps": 256, "vae_epochs": 1}', "--quiet"]
+    se.main([*args, "--timesteps", "2048"])
+    state = json.loads(sorted((out / "checkpoints" / "ppo_gocu_seed0").glob("state_*.json"))[-1].read_text())
+    zoo = state["config"]["zoo"]
+    assert zoo["n_envs"] == 8 and zoo["frame_stack"] == 4 and zoo["curiosity_kwargs"]["image_channels"] == 1
+    assert zoo["curiosity_kwargs"]["pretrain_steps"] == 256  # the command's setting merged into the file's
+    rows = read(out / "ppo_gocu_seed0.csv")
+    assert [int(r["steps"]) for r in rows] == [1024, 2048]  # 8 envs x 128 steps per rollout
+    summary = se.main([*args, "--timesteps", "3072"])  # resumed from the 2048-step checkpoint
+    rows = read(out / "ppo_gocu_seed0.csv")
+    assert [int(r["steps"]) for r in rows] == [1024, 2048, 3072]
+    assert int(rows[-1]["episodes"]) >= 1  # a random agent loses its 5 lives within 3,072 steps of 8 envs
+    assert float(rows[-1]["rooms_total"]) >= 1 and float(rows[-1]["rooms_mean"]) >= 1
+    assert float(rows[-1]["max_return"]) >= 0
+    assert "rooms visited" in summary and "best episode return" in summary
+    with pytest.raises(SystemExit):  # --zoo builds the zoo files' algorithms only
+        se.main([*args, "--algos", "a2c"])

@@ -18,6 +18,11 @@ sample table, and a summary:
 The stores are preallocated at their capacities, so growth after warm-up should be near zero (allocator noise
 of a few MB). ``--save-freq N`` also writes a checkpoint every N steps (``GoCuCheckpointCallback``) into a
 temporary directory, to soak the save path too. ``--csv PATH`` writes the samples.
+
+Atari (``--zoo``, the default for ``ALE/...`` ids): the agent the zoo launcher builds from
+``sb3_gocu/hyperparams/ppo_gocu.yml`` (8 envs, 4 stacked 84x84 frames, the VAE on the newest frame averaged to 42x42)::
+
+    python benchmarks/soak_memory.py --env ALE/MontezumaRevenge-v5 --timesteps 1000000 --seed 0 --save-freq 200000
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import pathlib
 import platform
 import sys
 import tempfile
@@ -41,6 +47,9 @@ from sb3_gocu.curiosity.config import EPISODE_MEMORY
 from sb3_gocu.curiosity.scoring import PHI_MEMO_SIZE
 from sb3_gocu import PAPER_PPO_KWARGS, PPO_GoCu
 from sb3_gocu.checkpoints import GoCuCheckpointCallback
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from throughput import zoo_model  # noqa: E402
 
 MB = 1024**2
 
@@ -95,6 +104,9 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=None, help="steps before the 'warm' sample (default: max(25%% of the run, 100k) if the run is long enough, else 25%%)")
     parser.add_argument("--print-every", type=int, default=20_480, help="steps between printed samples")
     parser.add_argument("--save-freq", type=int, default=0, help="checkpoint every N steps (0: no checkpoints)")
+    parser.add_argument("--zoo", action=argparse.BooleanOptionalAction, default=None,
+                        help="build the agent as the zoo launcher does, from hyperparams/ppo_gocu.yml (default: for ALE/... ids; "
+                        "--n-envs then comes from the file)")
     parser.add_argument("--csv", default=None, help="write the samples (timesteps, seconds, rss_mb) to this file")
     args = parser.parse_args()
 
@@ -105,14 +117,17 @@ def main() -> None:
     print("machine:", machine())
     print(f"RSS at start: {start / MB:.1f} MB", flush=True)
 
-    env = make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed)
-    model = PPO_GoCu("CnnPolicy", env, intrinsic_coef=0.25, seed=args.seed, **PAPER_PPO_KWARGS)
+    if args.env.startswith("ALE/") if args.zoo is None else args.zoo:
+        model = zoo_model("ppo_gocu", args.env, args.seed)
+    else:
+        env = make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed)
+        model = PPO_GoCu("CnnPolicy", env, intrinsic_coef=0.25, seed=args.seed, **PAPER_PPO_KWARGS)
     sampler = RSSSampler(args.print_every)
     callbacks: list[BaseCallback] = [sampler]
     tmp = None
     if args.save_freq > 0:
         tmp = tempfile.TemporaryDirectory(prefix="gocu_soak_")
-        callbacks.append(GoCuCheckpointCallback(max(1, args.save_freq // args.n_envs), tmp.name))  # save_freq counts calls
+        callbacks.append(GoCuCheckpointCallback(max(1, args.save_freq // model.n_envs), tmp.name))  # save_freq counts calls
     t0 = time.perf_counter()
     model.learn(args.timesteps, callback=callbacks)
     wall = time.perf_counter() - t0
@@ -147,6 +162,9 @@ def main() -> None:
             w.writerows((int(s), round(t, 2), round(r / MB, 2)) for s, t, r in samples)
         print(f"samples written to {args.csv}")
     if tmp is not None:
+        for path in sorted(pathlib.Path(tmp.name).rglob("*")):
+            if path.is_file():
+                print(f"checkpoint file {path.name}: {path.stat().st_size / MB:.1f} MB")
         tmp.cleanup()
 
 

@@ -4,6 +4,7 @@
     python benchmarks/plot_curves.py benchmarks/out/doorkey8 --band std --metric success_rate --out sr.png
     python benchmarks/plot_curves.py benchmarks/out/doorkey16 --per-seed      # runs of different lengths
     python benchmarks/plot_curves.py runs/gocu runs/ppo --out curves.png       # the runs of several folders
+    python benchmarks/plot_curves.py random=runs/random late=runs/late --seeds 0 1 2   # folders as named arms
 
 x = env steps, y = mean extrinsic return of the last 100 episodes (``--metric`` picks another CSV column). For
 each algo: the mean over seeds and a band (``--band minmax``: min to max over seeds, the default; ``std``:
@@ -13,7 +14,8 @@ fewer seeds (the legend gives the number of seeds); with ``--per-seed`` each see
 the mean and band stop where the shortest run stops, and labels that would overlap are moved apart (a thin line
 joins a moved label to its curve's end). Rows before a run's first finished episode are skipped. Several folders
 can be drawn on one figure (runs of one env made on different days or machines); a seed of one algo in two of them
-is refused.
+is refused. ``NAME=FOLDER`` draws a folder's runs as the arm ``NAME`` (an experiment whose arms differ in a setting:
+every run of the folder, whatever its algo, is that arm); ``--seeds`` keeps only those seeds.
 """
 
 from __future__ import annotations
@@ -62,13 +64,21 @@ def load_runs(directory: pathlib.Path, metric: str) -> Runs:
     return runs
 
 
-def load_folders(directories: Sequence[pathlib.Path], metric: str) -> Runs:
-    """:func:`load_runs` of each folder, merged; a seed of one algo in two folders raises ``ValueError``."""
+def load_folders(directories: Sequence[pathlib.Path], metric: str, names: Sequence[str | None] = (),
+                 seeds: Sequence[int] | None = None) -> Runs:
+    """:func:`load_runs` of each folder, merged; a seed of one algo in two folders raises ``ValueError``.
+
+    :param names: per folder, the arm its runs are drawn as (None: their algo)
+    :param seeds: keep only these seeds (None: all)
+    """
     runs: Runs = {}
     where: dict[tuple[str, int], pathlib.Path] = {}
-    for directory in directories:
-        for algo, seeds in load_runs(directory, metric).items():
-            for seed, curve in seeds.items():
+    for directory, name in zip(directories, [*names, *[None] * (len(directories) - len(names))]):
+        for algo, by_seed in load_runs(directory, metric).items():
+            algo = name or algo
+            for seed, curve in by_seed.items():
+                if seeds is not None and seed not in seeds:
+                    continue
                 if (algo, seed) in where:
                     raise ValueError(f"{algo} seed {seed} is in both {where[algo, seed]} and {directory}: pass one of them")
                 where[algo, seed] = directory
@@ -155,15 +165,19 @@ def mean_curve(seed_curves: Sequence[tuple[np.ndarray, np.ndarray]], band: str, 
 
 
 def plot(directory: str | pathlib.Path | Sequence[str | pathlib.Path], out: str | pathlib.Path | None = None, metric: str = "mean_return",
-         band: str = "minmax", title: str | None = None, threshold: float | None = 0.9, per_seed: bool = False) -> pathlib.Path:
-    """Draw the curves of the runs in ``directory`` (one folder or several) and save a PNG; ``per_seed``: also each
-    seed's own curve (thin, labelled at its end), with the mean and band drawn only where every seed has data.
+         band: str = "minmax", title: str | None = None, threshold: float | None = 0.9, per_seed: bool = False,
+         seeds: Sequence[int] | None = None) -> pathlib.Path:
+    """Draw the curves of the runs in ``directory`` (one folder or several; ``NAME=FOLDER``: the folder's runs as the
+    arm ``NAME``) and save a PNG; ``per_seed``: also each seed's own curve (thin, labelled at its end), with the mean
+    and band drawn only where every seed has data; ``seeds``: only these seeds.
     :return: the PNG's path (default: ``curves.png`` in the first folder)"""
-    folders = [pathlib.Path(directory)] if isinstance(directory, (str, pathlib.Path)) else [pathlib.Path(d) for d in directory]
-    if not folders:
+    given = [directory] if isinstance(directory, (str, pathlib.Path)) else list(directory)
+    if not given:
         raise ValueError("directory: give at least one folder")
+    names = [str(d).split("=", 1)[0] if "=" in str(d) else None for d in given]
+    folders = [pathlib.Path(str(d).split("=", 1)[1] if "=" in str(d) else d) for d in given]
     try:
-        runs = load_folders(folders, metric)
+        runs = load_folders(folders, metric, names, seeds)
     except ValueError as e:
         raise SystemExit(str(e)) from None
     if not runs:
@@ -226,8 +240,9 @@ def main(argv: Sequence[str] | None = None) -> pathlib.Path:
     p.add_argument("--band", choices=["minmax", "std"], default="minmax")
     p.add_argument("--title", default=None)
     p.add_argument("--per-seed", action="store_true", help="also draw each seed's curve; mean and band only where every seed ran")
+    p.add_argument("--seeds", nargs="+", type=int, default=None, help="only these seeds (default: all)")
     args = p.parse_args(argv)
-    path = plot(args.directory, args.out, args.metric, args.band, args.title, per_seed=args.per_seed)
+    path = plot(args.directory, args.out, args.metric, args.band, args.title, per_seed=args.per_seed, seeds=args.seeds)
     print(f"wrote {path}")
     return path
 

@@ -147,6 +147,22 @@ def test_plot_of_several_folders(plot_curves, two_runs, tmp_path):
         plot_curves.plot([first, second])
 
 
+def test_plot_draws_folders_as_named_arms(plot_curves, two_runs, tmp_path):
+    """NAME=FOLDER draws a folder's runs as the arm NAME (two folders of ppo_gocu runs: two arms); --seeds keeps those."""
+    out, _ = two_runs
+    first, second = tmp_path / "random", tmp_path / "late"
+    first.mkdir(), second.mkdir()
+    for folder in (first, second):
+        shutil.copy(out / "ppo_gocu_seed0.csv", folder / "ppo_gocu_seed0.csv")
+        shutil.copy(out / "ppo_gocu_seed0.csv", folder / "ppo_gocu_seed3.csv")
+    runs = plot_curves.load_folders([first, second], "mean_return", ["random", "late"], seeds=[0])
+    assert {arm: sorted(seeds) for arm, seeds in runs.items()} == {"random": [0], "late": [0]}
+    png = plot_curves.main([f"random={first}", f"late={second}", "--seeds", "0", "--out", str(tmp_path / "arms.png")])
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(SystemExit, match="ppo_gocu seed 0 is in both"):  # unnamed, the same algo and seed clash
+        plot_curves.plot([first, second])
+
+
 def test_plot_names_the_env_of_a_results_folder(plot_curves, two_runs, tmp_path):
     """A folder copied to benchmarks/results keeps summary.md but not the checkpoints: the env id comes from the
     summary's heading, and a heading without an id (the run's env not recorded) gives none."""

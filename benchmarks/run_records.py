@@ -29,7 +29,6 @@ COLUMNS = (
 )
 
 
-
 def atomic_write_bytes(path: pathlib.Path, data: bytes) -> None:
     """Write ``data`` to ``path`` all at once or not at all (:func:`sb3_gocu.checkpoints.atomic_write`)."""
     atomic_write(path, lambda f: f.write(data))

@@ -72,7 +72,8 @@ def curiosity_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 def run_config(args: argparse.Namespace, algo: str, seed: int) -> dict[str, Any]:
     """What a checkpoint must agree with to be resumed (the step budget is not part of it: it can grow)."""
     if args.zoo:
-        entry = {**zoo_entry(algo, args.env), **zoo_overrides(args, algo, zoo_entry(algo, args.env))}
+        entry = zoo_entry(algo, args.env)
+        entry = {**entry, **zoo_overrides(args, algo, entry)}
         entry.pop("n_timesteps", None)  # the budget is --timesteps
         return json.loads(json.dumps({"algo": algo, "seed": seed, "env": args.env, "zoo": entry, "window": args.window}))
     key = "ppo" if algo.startswith("ppo") else "model"

@@ -97,7 +97,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
-from sb3_gocu import GoCuCallback, GoCuVecEnvWrapper, PaperCNN, PPO_GoCu
+from sb3_gocu import ExplorationCallback, GoCuCallback, GoCuVecEnvWrapper, PaperCNN, PPO_GoCu
 from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES
 from sb3_gocu.wrappers import find_gocu_module
@@ -157,7 +157,6 @@ class SampleEfficiencyCallback(BaseCallback):
         self._sum = self._sq = self._norm = 0.0
         self._count = 0
         self._infos: list[list[dict]] = []
-        self._rooms: list[set[int]] = []  # rooms of each env's episode in progress (info["room"])
         self._t_rollout = time.perf_counter()
         self._steps_rollout = 0
         self._stop = False
@@ -187,16 +186,10 @@ class SampleEfficiencyCallback(BaseCallback):
         if self._stop:
             return False
         infos = self.locals["infos"]
-        if len(self._rooms) != len(infos):
-            self._rooms = [set() for _ in infos]
-        for rooms, info in zip(self._rooms, infos):
-            if "room" in info:  # RoomInfoWrapper (Montezuma's Revenge)
-                rooms.add(int(info["room"]))
+        for info in infos:
             ep = info.get("episode")
             if ep is not None:  # Monitor's end of a whole episode (a whole game on Atari)
-                self.run.add_episode(float(ep["r"]), info.get("task_phase"), info.get("distance"), info.get("is_success"),
-                                     set(rooms) if rooms else None)
-                rooms.clear()
+                self.run.add_episode(float(ep["r"]), info.get("task_phase"), info.get("distance"), info.get("is_success"))
         self._infos.append(infos)  # PPO_GoCu fills a step's gocu_* entries one step later (scoring in a worker thread)
         return True
 
@@ -251,9 +244,8 @@ class Run:
         self.window: deque = deque(maxlen=args.window)
         self.phases: deque = deque(maxlen=args.window)  # info["task_phase"] at episode ends (DoorKey ids)
         self.finals: deque = deque(maxlen=args.window)  # (info["distance"], info["is_success"]) at episode ends
-        self.episode_rooms: deque = deque(maxlen=args.window)  # rooms visited per episode (info["room"])
-        self.rooms: set[int] = set()  # every room visited so far
-        self.max_return = float("nan")  # the best episode return so far
+        #: rooms visited per episode and in total (info["room"], Montezuma's Revenge) and the best episode return
+        self.exploration = ExplorationCallback(window=args.window)
         self.episodes = 0
         self.wall_before = 0.0
         self.session_start = time.perf_counter()
@@ -268,15 +260,8 @@ class Run:
         self.stopped_at_threshold: int | None = None
 
     # ------------------------------------------------------------ recording
-    def add_episode(
-        self, ret: float, phase: int | None = None, distance: float | None = None, success: bool | None = None,
-        rooms: set[int] | None = None,
-    ) -> None:
+    def add_episode(self, ret: float, phase: int | None = None, distance: float | None = None, success: bool | None = None) -> None:
         self.window.append(ret)
-        self.max_return = ret if math.isnan(self.max_return) else max(self.max_return, ret)
-        if rooms:
-            self.episode_rooms.append(len(rooms))
-            self.rooms |= rooms
         if phase is not None:
             self.phases.append(int(phase))
         if distance is not None or success is not None:
@@ -292,6 +277,7 @@ class Run:
         w = np.asarray(self.window, dtype=np.float64)
         ph = np.asarray(self.phases, dtype=np.int64)
         finals = np.asarray(self.finals, dtype=np.float64).reshape(-1, 2)
+        explored = self.exploration
         row = {
             "algo": self.algo,
             "seed": self.seed,
@@ -304,9 +290,9 @@ class Run:
             "door_rate": float((ph >= 2).mean()) if len(ph) else float("nan"),
             "final_distance": float(np.mean(finals[:, 0])) if len(finals) else float("nan"),
             "final_success": float(np.mean(finals[:, 1])) if len(finals) else float("nan"),
-            "max_return": self.max_return,
-            "rooms_mean": float(np.mean(self.episode_rooms)) if self.episode_rooms else float("nan"),
-            "rooms_total": len(self.rooms) if self.rooms else float("nan"),
+            "max_return": explored.max_return if np.isfinite(explored.max_return) else float("nan"),
+            "rooms_mean": float(np.mean(explored.episode_rooms)) if explored.episode_rooms else float("nan"),
+            "rooms_total": len(explored.rooms) if explored.rooms else float("nan"),
             "intrinsic_mean": intrinsic_mean,
             "intrinsic_std": intrinsic_std,
             "intrinsic_norm_mean": intrinsic_norm,
@@ -324,7 +310,7 @@ class Run:
             print(
                 f"[{self.name}] {steps:>9d}/{self.args.timesteps} steps  {self.episodes:6d} episodes  "
                 f"mean return {row['mean_return']:.3f}  success {row['success_rate']:.2f}  "
-                + (f"rooms {row['rooms_mean']:.1f} (total {len(self.rooms)})  best {self.max_return:g}  " if self.rooms
+                + (f"rooms {row['rooms_mean']:.1f} (total {len(explored.rooms)})  best {explored.max_return:g}  " if explored.rooms
                    else f"key {row['key_rate']:.2f}  door {row['door_rate']:.2f}  ")
                 + f"r_gc {intrinsic_mean:.4f}  {fps:5.0f} steps/s  {row['wall_time_s'] / 60:6.1f} min",
                 flush=True,
@@ -339,9 +325,7 @@ class Run:
             "window": list(self.window),
             "phases": list(self.phases),
             "finals": [list(f) for f in self.finals],
-            "episode_rooms": list(self.episode_rooms),
-            "rooms": sorted(self.rooms),
-            "max_return": self.max_return,
+            **self.exploration.state_dict(),  # episode_rooms, rooms, max_return
             "wall_time_s": self.wall_time(),
             "rows": self.rows,
             "resumed_from": self.resumed_from,
@@ -399,9 +383,7 @@ class Run:
             self.window = deque(state["window"], maxlen=self.args.window)
             self.phases = deque(state.get("phases", []), maxlen=self.args.window)
             self.finals = deque([tuple(f) for f in state.get("finals", [])], maxlen=self.args.window)
-            self.episode_rooms = deque(state.get("episode_rooms", []), maxlen=self.args.window)
-            self.rooms = set(state.get("rooms", []))
-            self.max_return = float(state.get("max_return", float("nan")))
+            self.exploration.load_state_dict({k: state.get(k, d) for k, d in (("episode_rooms", []), ("rooms", []), ("max_return", None))})
             self.episodes = int(state["episodes"])
             self.wall_before = float(state["wall_time_s"])
             self.resumed_from = list(state.get("resumed_from", []))
@@ -458,7 +440,7 @@ class Run:
         )
 
     def callbacks(self) -> list[BaseCallback]:
-        callbacks: list[BaseCallback] = [SampleEfficiencyCallback(self)]
+        callbacks: list[BaseCallback] = [self.exploration, SampleEfficiencyCallback(self)]
         if self.algo in SUM_ALGOS:
             callbacks.append(GoCuCallback())
         return callbacks

@@ -91,6 +91,21 @@ class ExplorationCallback(BaseCallback):
         self.max_return = -np.inf
         self._current: list[set[int]] = []
 
+    def state_dict(self) -> dict[str, Any]:
+        """The counts of finished episodes, JSON-serialisable (``max_return`` is None before the first episode ends)."""
+        return {
+            "episode_rooms": list(self.episode_rooms),
+            "rooms": sorted(self.rooms),
+            "max_return": float(self.max_return) if np.isfinite(self.max_return) else None,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore the counts of a :meth:`state_dict`. :param state: what :meth:`state_dict` returned"""
+        self.episode_rooms = deque((int(n) for n in state["episode_rooms"]), maxlen=self.episode_rooms.maxlen)
+        self.rooms = {int(r) for r in state["rooms"]}
+        best = state["max_return"]
+        self.max_return = -np.inf if best is None or not np.isfinite(best) else float(best)
+
     def _on_training_start(self) -> None:
         if len(self._current) != self.training_env.num_envs:  # a continued learn() keeps the episodes in progress
             self._current = [set() for _ in range(self.training_env.num_envs)]

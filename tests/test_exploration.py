@@ -56,6 +56,23 @@ def test_callback_counts_rooms_per_episode_and_in_total_and_the_best_return():
     assert logged["rollout/rooms_per_episode"] == pytest.approx(5 / 3)
 
 
+
+def test_callback_counts_survive_a_state_dict_round_trip_through_json():
+    import json
+
+    env = DummyVecEnv([lambda: Monitor(RoomWalk(0)), lambda: Monitor(RoomWalk(1))])
+    model = PPO("MlpPolicy", env, n_steps=10, batch_size=20, n_epochs=1, seed=0)
+    callback = ExplorationCallback(window=3)
+    assert callback.state_dict()["max_return"] is None  # no episode yet: JSON null, not -inf
+    model.learn(20, callback=callback)
+    restored = ExplorationCallback(window=3)
+    restored.load_state_dict(json.loads(json.dumps(callback.state_dict())))
+    assert restored.rooms == callback.rooms and list(restored.episode_rooms) == list(callback.episode_rooms)
+    assert restored.max_return == callback.max_return == 2.0
+    assert restored.episode_rooms.maxlen == 3  # the window of the callback it is restored into
+    model.learn(20, callback=restored, reset_num_timesteps=False)  # counting goes on from the restored counts
+    assert restored.rooms == {1, 2, 3, 7} and list(restored.episode_rooms) == [1, 3, 1]
+
 def test_room_info_wrapper_reads_montezumas_room_byte():
     import ale_py
 

@@ -116,6 +116,12 @@ def steps_to_threshold(rows: Sequence[dict[str, Any]], threshold: float, min_win
     return None
 
 
+def wall_time_to_threshold(rows: Sequence[dict[str, Any]], threshold: float, min_window: int) -> float | None:
+    """Training wall time (s) at the row of :func:`steps_to_threshold` (None if the run never reached it)."""
+    steps = steps_to_threshold(rows, threshold, min_window)
+    return None if steps is None else float(next(r["wall_time_s"] for r in rows if int(r["steps"]) == steps))
+
+
 def best_mean_return(rows: Sequence[dict[str, Any]], min_window: int) -> float:
     """The best windowed mean return of a run (rows whose window holds >= min_window episodes; nan if none does)."""
     means = [r["mean_return"] for r in rows if r["window_episodes"] >= min_window]
@@ -150,10 +156,11 @@ def summarize(
     # Table 2's measure, where the env reports it: the last 100 episodes' final distance and final success
     finals = any(math.isfinite(r[-1].get("final_distance", float("nan"))) for a in runs.values() for r in a.values())
     lines = [
-        f"| algo | seeds | final steps | steps to mean return >= {threshold} | final success rate | final mean return | wall time (min) |"
+        f"| algo | seeds | final steps | steps to mean return >= {threshold} | wall time to it (min) | final success rate |"
+        " final mean return | wall time (min) |"
         + (" final distance | success at the last step |" if finals else "")
         + (" best mean return | best episode return | rooms per episode (last 100) | rooms visited |" if atari else ""),
-        "| --- | --- | --- | --- | --- | --- | --- |" + (" --- | --- |" if finals else "") + (" --- | --- | --- | --- |" if atari else ""),
+        "| --- | --- | --- | --- | --- | --- | --- | --- |" + (" --- | --- |" if finals else "") + (" --- | --- | --- | --- |" if atari else ""),
     ]
     figures: dict[str, Any] = {}
     for algo in order:
@@ -161,6 +168,7 @@ def summarize(
         per_seed = {s: runs[algo][s] for s in seeds}
         reached = {s: steps_to_threshold(r, threshold, min_window) for s, r in per_seed.items()}
         hit = [v for v in reached.values() if v is not None]
+        minutes = [t / 60 for t in (wall_time_to_threshold(r, threshold, min_window) for r in per_seed.values()) if t is not None]
         final = [r[-1] for r in per_seed.values()]
         if not hit:
             to_thr = "not reached"
@@ -170,7 +178,7 @@ def summarize(
                 to_thr += "; " + ", ".join(f"seed {s}: not reached" for s, v in reached.items() if v is None)
         final_steps = sorted({int(r['steps']) for r in final})
         lines.append(
-            f"| {algo} | {', '.join(map(str, seeds))} | {', '.join(f'{s:,}' for s in final_steps)} | {to_thr} | "
+            f"| {algo} | {', '.join(map(str, seeds))} | {', '.join(f'{s:,}' for s in final_steps)} | {to_thr} | {_pm(minutes, '.1f')} | "
             f"{_pm([r['success_rate'] for r in final], '.3f')} | {_pm([r['mean_return'] for r in final], '.3f')} | "
             f"{_pm([r['wall_time_s'] / 60 for r in final], '.1f')} |"
             + (f" {_pm([r.get('final_distance', float('nan')) for r in final], '.3f')} |"

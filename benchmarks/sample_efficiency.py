@@ -131,6 +131,7 @@ from run_records import (  # noqa: E402, F401  (re-exported: ablations.py, the p
     recorded,
     run_name,
     steps_to_threshold,
+    wall_time_to_threshold,
     summarize,
 )
 

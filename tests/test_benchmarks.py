@@ -252,6 +252,10 @@ def test_steps_to_threshold(se):
     assert se.steps_to_threshold(rows, 0.9, 100) == 300
     assert se.steps_to_threshold(rows, 0.9, 10) == 100
     assert se.steps_to_threshold(rows, 0.99, 100) is None
+    for r, wall in zip(rows, (10.0, 20.0, 30.0, 40.0)):
+        r["wall_time_s"] = wall
+    assert se.wall_time_to_threshold(rows, 0.9, 100) == 30.0  # the wall time at the row that reached it
+    assert se.wall_time_to_threshold(rows, 0.99, 100) is None
 
 
 def test_behaviour_compares_agent_and_random_policy(two_runs):

@@ -124,8 +124,8 @@ def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int, zoo: bool = Fa
 def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dict[str, Any], gocu_model: str | None = None,
         overrides: dict[str, Any] | None = None, model_attrs: dict[str, Any] | None = None, zoo: bool = False) -> dict[str, float]:
     """One arm: ``algo`` for ``timesteps`` steps; ``overrides``: curiosity settings that replace those of
-    ``curiosity_kwargs`` (a fresh agent) or of the loaded model (``gocu_model``); ``zoo``: the agent the zoo launcher
-    builds from our YAML files."""
+    ``curiosity_kwargs`` (a fresh agent; refused with ``gocu_model``, whose settings were fixed at its construction);
+    ``zoo``: the agent the zoo launcher builds from our YAML files."""
     overrides = overrides or {}
     timer = Timer()
     if zoo:
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--reverse", action="store_true", help="run the arms in reverse order (the --also-* arms first, plain PPO last)")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
     parser.add_argument("--gocu-model", default=None, help="PPO_GoCu continues this trained model instead of starting afresh "
-                        "(its own curiosity settings, but for those the --also-* arms set; "
+                        "(with its own curiosity settings: curiosity settings of --also-* arms are refused; "
                         "no pretraining); plain PPO still starts afresh")
     parser.add_argument("--also-model-kwargs", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with these PPO_GoCu attributes set, e.g. '{\"n_epochs\": 2}' "

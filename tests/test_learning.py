@@ -58,7 +58,7 @@ class StopAtMeanReturn(BaseCallback):
 
 
 def benchmark_script():
-    """``benchmarks/sample_efficiency.py``, whose ``replace_curiosity`` breaks the curiosity on purpose."""
+    """``benchmarks/sample_efficiency.py``, whose ``replace_curiosity`` (from ``run_switches.py``) breaks the curiosity on purpose."""
     from conftest import load_script
 
     return load_script("sample_efficiency", "benchmarks/sample_efficiency.py")

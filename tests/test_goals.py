@@ -5,6 +5,7 @@ import pytest
 import torch as th
 
 from sb3_gocu.curiosity import GoalBuffer, MemoryBank, TrajectoryStore, select_goal_steps
+from sb3_gocu.curiosity.episodes import Episodes
 
 
 def draws(strategy, length=50, n_new=7, n=3000, seed=0):
@@ -218,3 +219,14 @@ def test_predictor_pairs_are_deduplicated_with_their_multiplicity_as_weight():
     plain.rng.bit_generator.state = state
     job_plain = plain.predictor_job()
     assert len(job_plain.phi_s) == 400 and bool((job_plain.weights == 1).all())
+
+
+def test_every_finished_episode_waits_for_goal_selection():
+    """A rollout of many short episodes (here 3,000 of 2 steps) keeps each of them for goal selection."""
+    episodes = Episodes(n_goals=2, raw_shape=(3,), raw_dtype=np.dtype(np.float32), goal_part_size=4)
+    episodes.grow(1)
+    for i in range(3000):
+        episodes.states[0].extend([np.full(3, i, np.float32), np.full(3, i + 0.5, np.float32)])
+        episodes.restart(0, recording=True)
+    assert len(episodes.finished) == 3000
+    assert episodes.finished[0][0, 0] == 0 and episodes.finished[-1][1, 0] == 2999.5  # the first and the last, in order

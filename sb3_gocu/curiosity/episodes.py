@@ -59,7 +59,9 @@ class Episodes:
         self.states: list[deque] = []  # the episode's most recent raw states (goal candidates)
         self.rewards: list[dict[bytes, tuple[float, np.ndarray]]] = []  # memo: key -> (raw r_gc, phi)
         self.visits: list[dict[bytes, int]] = []
-        self.finished: deque = deque(maxlen=1024)  # states of episodes ended while recording, for goal selection
+        # states of episodes ended while recording, for goal selection: unbounded, since they hold no more states than
+        # the steps since the last add_finished_episode_goals (a rollout); a bound would drop episodes of short ones
+        self.finished: deque = deque()
 
     def grow(self, n_envs: int) -> np.ndarray:
         """Grow to ``n_envs`` envs; returns the indices of the new ones (without goals yet)."""

@@ -58,14 +58,19 @@ class _RewardReport:
         observation_space: gym.Space,
         module: GoalCuriosityModule | None,
         mode: str,
-        intrinsic_coef: float,
+        intrinsic_coef: float | None,
         curiosity_kwargs: dict[str, Any] | None,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if mode == "separate" and intrinsic_coef is not None:
+            raise ValueError(
+                "intrinsic_coef weighs r_gc in mode='sum' only; in mode='separate' PPO_GoCu weighs the curiosity "
+                "advantage: give PPO_GoCu(intrinsic_coef=...)"
+            )
         self.module = _make_module(observation_space, module, curiosity_kwargs)
         self.mode = mode
-        self.intrinsic_coef = check_intrinsic_coef(intrinsic_coef)
+        self.intrinsic_coef = check_intrinsic_coef(DEFAULT_INTRINSIC_COEF if intrinsic_coef is None else intrinsic_coef)
         self._episode_sums: dict[int, float] = {}  # env -> normalised r_gc summed over its current episode
 
     def _report(self, info: dict, extrinsic: float, raw: float, normalized: float, env: int = 0) -> float:
@@ -87,7 +92,8 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
     :param module: the curiosity module; default: a new one built from ``curiosity_kwargs`` and the
         env's observation space
     :param mode: ``"sum"`` (reward = r_e + intrinsic_coef * r_gc) or ``"separate"`` (reward = r_e)
-    :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only; 0.25 as PPO_GoCu's)
+    :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only, default 0.25 as
+        PPO_GoCu's; given with ``mode="separate"`` it is an error)
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
     """
 
@@ -96,7 +102,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         venv: VecEnv,
         module: GoalCuriosityModule | None = None,
         mode: str = "sum",
-        intrinsic_coef: float = DEFAULT_INTRINSIC_COEF,
+        intrinsic_coef: float | None = None,
         curiosity_kwargs: dict[str, Any] | None = None,
     ) -> None:
         VecEnvWrapper.__init__(self, venv)
@@ -156,7 +162,8 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
     :param env: the environment
     :param module: the curiosity module (default: a new one from ``curiosity_kwargs``)
     :param mode: ``"sum"`` or ``"separate"``, as for :class:`GoCuVecEnvWrapper`
-    :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only; 0.25 as PPO_GoCu's)
+    :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only, default 0.25 as
+        PPO_GoCu's; given with ``mode="separate"`` it is an error)
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
     """
 
@@ -165,7 +172,7 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
         env: gym.Env,
         module: GoalCuriosityModule | None = None,
         mode: str = "sum",
-        intrinsic_coef: float = DEFAULT_INTRINSIC_COEF,
+        intrinsic_coef: float | None = None,
         curiosity_kwargs: dict[str, Any] | None = None,
     ) -> None:
         gym.Wrapper.__init__(self, env)

@@ -158,7 +158,8 @@ def test_module_refuses_invalid_settings(kwargs, match):
         (lambda: GoCuWrapper(ChainEnv(), mode="add"), r"mode must be one of \('sum', 'separate'\)"),
         (lambda: GoCuVecEnvWrapper(chain_venv(1), intrinsic_coef=-1.0), r"intrinsic_coef \(sigma\) must be a number >= 0, got -1.0"),
         (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=-1.0), r"intrinsic_coef \(sigma\) must be a number >= 0"),
-        (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef=None), r"intrinsic_coef \(sigma\) must be a number >= 0, got None"),
+        (lambda: GoCuWrapper(ChainEnv(), intrinsic_coef="0.5"), r"intrinsic_coef \(sigma\) must be a number >= 0, got '0.5'"),
+        (lambda: GoCuVecEnvWrapper(chain_venv(1), mode="separate", intrinsic_coef=0.5), r"mode='sum' only.*PPO_GoCu\(intrinsic_coef"),
         (lambda: GoCuCheckpointCallback(True, "unused"), r"save_freq must be an integer >= 1, got True"),
     ],
 )

@@ -7,6 +7,7 @@ Stable-Baselines3 import.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -38,6 +39,6 @@ DEFAULT_INTRINSIC_COEF = 0.25
 
 
 def check_intrinsic_coef(value: Any) -> float:
-    """``value`` as sigma, the weight of the curiosity reward or advantage; a ``ValueError`` unless a number >= 0."""
-    check(is_number(value) and value >= 0, f"intrinsic_coef (sigma) must be a number >= 0, got {value!r}")
+    """``value`` as sigma, the weight of the curiosity reward or advantage; a ``ValueError`` unless a finite number >= 0."""
+    check(is_number(value) and math.isfinite(value) and value >= 0, f"intrinsic_coef (sigma) must be a finite number >= 0, got {value!r}")
     return float(value)

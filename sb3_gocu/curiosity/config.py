@@ -93,7 +93,8 @@ class CuriosityConfig:
         numbers = ("goal_novelty", "alpha", "reward_scale", "intrinsic_gamma", "prior_weight", "distance_weight", "label_threshold",
                    "label_slope", "predictor_lr", "vae_lr", "vae_beta")
         for name in numbers:
-            check(is_number(getattr(self, name)), f"{name} must be a number, got {getattr(self, name)!r}")
+            value = getattr(self, name)
+            check(is_number(value) and math.isfinite(value), f"{name} must be a finite number, got {value!r}")
         for name in ("soft_labels", "first_visit_distance", "predictor_dedupe", "vae_dedupe"):
             check(is_flag(getattr(self, name)), f"{name} must be True or False, got {getattr(self, name)!r}")
         check(self.goal_buffer_size >= 1, f"goal_buffer_size must be >= 1, got {self.goal_buffer_size}")
@@ -102,7 +103,6 @@ class CuriosityConfig:
         check(self.new_goals_per_episode >= 0, f"new_goals_per_episode (l) must be >= 0, got {self.new_goals_per_episode}")
         check(self.goal_strategy in GOAL_STRATEGIES, f"goal_strategy must be one of {GOAL_STRATEGIES}, got {self.goal_strategy!r}")
         check(self.goal_novelty >= 0, f"goal_novelty must be >= 0, got {self.goal_novelty}")
-        check(math.isfinite(self.alpha), f"alpha must be a finite number, got {self.alpha}")
         check(self.aggregation in AGGREGATIONS, f"aggregation (h) must be one of {AGGREGATIONS}, got {self.aggregation!r}")
         check(self.revisit_decay in REVISIT_DECAYS, f"revisit_decay must be one of {REVISIT_DECAYS}, got {self.revisit_decay!r}")
         check(self.reward_scale > 0, f"reward_scale (delta) must be > 0, got {self.reward_scale}")
@@ -122,6 +122,9 @@ class CuriosityConfig:
         check(self.vae_beta >= 0, f"vae_beta must be >= 0, got {self.vae_beta}")
         check(self.vae_pixel_weighting is None or (is_number(self.vae_pixel_weighting) and 0 <= self.vae_pixel_weighting <= 1),
               f"vae_pixel_weighting must be None or in [0, 1], got {self.vae_pixel_weighting!r}")
+        check(self.obs_key is None or isinstance(self.obs_key, str), f"obs_key must be None or a string, got {self.obs_key!r}")
+        check(self.image_channels is None or (is_integer(self.image_channels) and self.image_channels >= 1),
+              f"image_channels must be None or an integer >= 1, got {self.image_channels!r}")
         hidden = self.predictor_hidden
         check(isinstance(hidden, Sequence) and len(hidden) >= 1 and all(is_integer(h) and h >= 1 for h in hidden),
               f"predictor_hidden must be a non-empty sequence of integers >= 1, got {hidden!r}")

@@ -130,7 +130,8 @@ class GoCuCallback(BaseCallback):
         if self.verbose:
             print(
                 f"GoCu: pretrained the VAE on {bank_size} random-policy observations "
-                f"({stats.get('vae_distinct_observations', 0):.0f} distinct) in {self.pretrain_time:.1f} s; "
+                f"({stats.get('vae_observations', 0):.0f} {'distinct' if self.module.config.vae_dedupe else 'trained on'}) "
+                f"in {self.pretrain_time:.1f} s; "
                 f"{self.module.goal_buffer.size} goals"
             )
 

@@ -127,7 +127,8 @@ class Episodes:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a :meth:`state_dict` into envs already grown to its number (goal halves included, if saved)."""
+        """Restore the goals, ids and states of a :meth:`state_dict` into envs already grown to its number (the goal
+        halves and the memos: :meth:`load_memos`)."""
         self.goal_obs[:] = state["goal_obs"].numpy()
         self.has_goals[:] = state["goal_valid"][:, 0].numpy()  # (n_envs, K), all or none of K per env
         self.ids[:] = state["episode_ids"].numpy()

@@ -92,9 +92,8 @@ class GoalCuriosityModule:
         raw_shape, raw_dtype = self.adapter.raw_shape, self.adapter.raw_dtype
         self.goal_buffer = GoalBuffer(cfg.goal_buffer_size, raw_shape, raw_dtype, cfg.embed_dim, cfg.goal_novelty)
         self.memory = MemoryBank(cfg.memory_size, raw_shape, raw_dtype)
-        self.trajectories = TrajectoryStore(cfg.predictor_train_freq, cfg.embed_dim, min_per_env=2 * cfg.max_distance)
         self.normalizer = IntrinsicReturnNormalizer(cfg.intrinsic_gamma)
-        self.episodes = Episodes(cfg.n_goals, raw_shape, raw_dtype, self.predictor.hidden[0].out_features)
+        self.episodes, self.trajectories = self._new_env_stores()
         to_tensor = functools.partial(self.adapter.to_tensor, device=self.device)
         self.scorer = Scorer(self.episodes, cfg.embed_dim, to_tensor, (cfg.alpha, cfg.aggregation, cfg.reward_scale))
 
@@ -114,6 +113,12 @@ class GoalCuriosityModule:
         self.time_predictor = 0.0
         self._folded = self.predictor.fold()
         self._encoder = self._frozen_encoder()
+
+    def _new_env_stores(self) -> tuple[Episodes, TrajectoryStore]:
+        """Empty per-env stores, grown by :meth:`ensure_envs`: the episodes in progress and the training-pair store."""
+        cfg = self.config
+        episodes = Episodes(cfg.n_goals, self.adapter.raw_shape, self.adapter.raw_dtype, self.predictor.hidden[0].out_features)
+        return episodes, TrajectoryStore(cfg.predictor_train_freq, cfg.embed_dim, min_per_env=2 * cfg.max_distance)
 
     def __getattr__(self, name: str) -> Any:
         """The settings read as attributes (``module.n_goals``)."""
@@ -222,13 +227,20 @@ class GoalCuriosityModule:
 
     def refresh(self) -> None:
         """Take the VAE's and the predictor's current weights into use for scoring (after changing them by hand):
-        a new frozen encoder and folded predictor, the goals re-embedded, the memos dropped."""
+        a new frozen encoder and folded predictor, the goals re-embedded, the memos and the stored training pairs
+        (embedded by the old encoder) dropped."""
         self.collect_all()
+        self._use_encoder()
+        self._folded = self.predictor.fold()
+        self._refresh_active_goals()
+
+    def _use_encoder(self) -> None:
+        """Embed with the VAE's current weights: a new frozen encoder, the goals re-embedded, and what the old encoder
+        embedded dropped (the phi memo, the training-pair store)."""
         self._encoder = self._frozen_encoder()
         self.scorer.phi_memo.clear()
         self.goal_buffer.refresh(self.embed)
-        self._folded = self.predictor.fold()
-        self._refresh_active_goals()
+        self.trajectories.clear()
 
     # ------------------------------------------------------------------ the step
     def step(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -353,10 +365,7 @@ class GoalCuriosityModule:
         t0 = time.perf_counter()
         guard_update("vae", self.vae, self.trainer.vae_optimizer, fit.snapshot, fit.skipped, self.stats)
         if fit.best_epoch > 0:  # otherwise the VAE kept its weights: every embedding is still valid
-            self._encoder = self._frozen_encoder()
-            self.scorer.phi_memo.clear()
-            self.goal_buffer.refresh(self.embed)
-            self.trajectories.clear()  # stored embeddings belong to the old encoder
+            self._use_encoder()
             self._refresh_active_goals()
         dt = fit.time + time.perf_counter() - t0
         self.time_vae += dt

@@ -285,9 +285,7 @@ class MasteryPredictor(nn.Module):
         return th.softmax(self(phi_s, phi_g), dim=-1)[:, 1]
 
     def fold(self) -> "FoldedPredictor":
-        """The eval-mode function of this network with batch norm folded in and the first layer split.
-
-        :param dtype: dtype of the hidden layers after the first (see :class:`FoldedPredictor`)"""
+        """The eval-mode function of this network with batch norm folded in and the first layer split."""
         return FoldedPredictor(self)
 
 

@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch as th
 
-from sb3_gocu.curiosity.episodes import Episodes, memo_from_state, memo_to_state
-from sb3_gocu.curiosity.stores import TrajectoryStore, distinct_rows
+from sb3_gocu.curiosity.episodes import memo_from_state, memo_to_state
+from sb3_gocu.curiosity.stores import distinct_rows
 from sb3_gocu.curiosity.training import nonfinite_entries
 
 if TYPE_CHECKING:
@@ -163,10 +163,8 @@ def load_module_state(module: GoalCuriosityModule, state: dict[str, Any], strict
     envs = state.get("envs")
     if envs is not None:
         n = int(envs["episode_ids"].shape[0])
-        cfg = module.config
-        module.episodes = Episodes(cfg.n_goals, module.adapter.raw_shape, module.adapter.raw_dtype, module.predictor.hidden[0].out_features)
+        module.episodes, module.trajectories = module._new_env_stores()
         module.scorer.episodes, module.scorer.pending = module.episodes, []
-        module.trajectories = TrajectoryStore(cfg.predictor_train_freq, cfg.embed_dim, min_per_env=2 * cfg.max_distance)
         module.normalizer.returns = module.normalizer.returns[:0]
         rng_state = module.rng.bit_generator.state
         module.ensure_envs(n)  # allocates; the goals it draws are overwritten below

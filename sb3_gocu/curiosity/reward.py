@@ -11,9 +11,7 @@ AGGREGATIONS = ("max", "mean")
 REVISIT_DECAYS = ("none", "inverse_sqrt", "first_visit")
 
 
-def curiosity_reward(
-    mastery: th.Tensor, alpha: float = 1.0, aggregation: str = "max", scale: float = 10.0, valid: th.Tensor | None = None
-) -> th.Tensor:
+def curiosity_reward(mastery: th.Tensor, alpha: float = 1.0, aggregation: str = "max", scale: float = 10.0) -> th.Tensor:
     """Eq 13: ``r_gc = (alpha - h(m_1, ..., m_K)) / delta``.
 
     :param mastery: (n, K) probabilities that each of the K goals is mastered from each state; with
@@ -21,23 +19,14 @@ def curiosity_reward(
     :param alpha: alpha, the value of the uniform vector (sign and offset of the reward)
     :param aggregation: h, ``"max"`` or ``"mean"``
     :param scale: delta, the divisor
-    :param valid: optional (n, K) mask of the goals that exist; a row without any valid goal has h = 0
     :return: (n,)
     """
-    if valid is not None:
-        if aggregation == "max":
-            h = th.where(valid, mastery, th.zeros_like(mastery)).max(dim=1).values if mastery.shape[1] else mastery.new_zeros(len(mastery))
-        elif aggregation == "mean":
-            h = th.where(valid, mastery, th.zeros_like(mastery)).sum(dim=1) / valid.sum(dim=1).clamp(min=1)
-        else:
-            raise ValueError(f"aggregation must be one of {AGGREGATIONS}, got {aggregation!r}")
-        return (alpha - h) / scale
     if mastery.shape[1] == 0:
         h = mastery.new_zeros(mastery.shape[0])
     elif aggregation == "max":
         h = mastery.max(dim=1).values
     elif aggregation == "mean":
-        h = mastery.sum(dim=1) / mastery.shape[1]  # as with a mask of all True, to the bit
+        h = mastery.sum(dim=1) / mastery.shape[1]  # a sum over K, then one division: the bits of every recorded run
     else:
         raise ValueError(f"aggregation must be one of {AGGREGATIONS}, got {aggregation!r}")
     return (alpha - h) / scale

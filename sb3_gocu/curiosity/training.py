@@ -97,7 +97,7 @@ class VaeFit:
 
     def stats(self, seconds: float) -> dict[str, float]:
         """The figures logged for the update (``seconds``: its whole time)."""
-        return {"vae_loss": mean_or_nan(self.losses), "vae_distinct_observations": float(self.n), "vae_skipped_updates": float(self.skipped),
+        return {"vae_loss": mean_or_nan(self.losses), "vae_observations": float(self.n), "vae_skipped_updates": float(self.skipped),
                 "vae_epochs_run": float(self.epochs_run), "vae_best_epoch": float(self.best_epoch), "vae_val_loss": self.val_loss,
                 "vae_time": seconds}
 

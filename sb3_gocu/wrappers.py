@@ -70,7 +70,10 @@ class _RewardReport:
             )
         self.module = _make_module(observation_space, module, curiosity_kwargs)
         self.mode = mode
-        self.intrinsic_coef = check_intrinsic_coef(DEFAULT_INTRINSIC_COEF if intrinsic_coef is None else intrinsic_coef)
+        # None in mode="separate": nothing weighs r_gc here, PPO_GoCu does
+        self.intrinsic_coef: float | None = None
+        if mode == "sum":
+            self.intrinsic_coef = check_intrinsic_coef(DEFAULT_INTRINSIC_COEF if intrinsic_coef is None else intrinsic_coef)
         self._episode_sums: dict[int, float] = {}  # env -> normalised r_gc summed over its current episode
 
     def _report(self, info: dict, extrinsic: float, raw: float, normalized: float, env: int = 0) -> float:
@@ -82,7 +85,7 @@ class _RewardReport:
         self._episode_sums[env] = self._episode_sums.get(env, 0.0) + float(normalized)
         if isinstance(info.get("episode"), dict):
             info["episode"]["gocu_r"] = self._episode_sums.pop(env)
-        return float(extrinsic) + self.intrinsic_coef * float(normalized) if self.mode == "sum" else float(extrinsic)
+        return float(extrinsic) if self.intrinsic_coef is None else float(extrinsic) + self.intrinsic_coef * float(normalized)
 
 
 class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):

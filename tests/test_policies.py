@@ -43,7 +43,7 @@ def test_cnn_policy_takes_32x32_images_from_an_env_id():
     obs = model.policy.obs_to_tensor(model.env.reset())[0]
     actions, values, _ = model.policy(obs)
     assert values.shape == (1, 2) and model.policy.predict_values(obs).shape == (1, 2)
-    assert isinstance(model.env, GoCuVecEnvWrapper) and model.env.mode == "separate"
+    assert isinstance(model.env, GoCuVecEnvWrapper) and model.env.mode == "separate" and model.env.intrinsic_coef is None
     model.learn(32)
     assert model.num_timesteps == 32
 

@@ -7,6 +7,7 @@ import pytest
 import torch as th
 from stable_baselines3 import A2C, PPO
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_gocu import PAPER_PPO_KWARGS, GoalCuriosityModule, GoCuCallback, GoCuVecEnvWrapper, GoCuWrapper, PPO_GoCu
@@ -117,7 +118,7 @@ def test_ppo_settings_default_to_the_papers_and_given_ones_win():
 
 def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():
     module = GoalCuriosityModule(ChainEnv().observation_space, **SMALL_CURIOSITY, seed=0)
-    venv = DummyVecEnv([lambda: GoCuWrapper(ChainEnv(), module=module, mode="sum") for _ in range(2)])
+    venv = DummyVecEnv([lambda: GoCuWrapper(Monitor(ChainEnv()), module=module, mode="sum") for _ in range(2)])
     assert module.n_envs == 2
     # the envs registered one at a time share the store's P_m states, as one VecEnv wrapper's would
     vec_module = GoCuVecEnvWrapper(chain_venv(), curiosity_kwargs=SMALL_CURIOSITY).module
@@ -125,13 +126,20 @@ def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():
     assert module.trajectories.capacity == max(-(-module.predictor_train_freq // 2), 2 * module.max_distance)
     venv.seed(0)
     venv.reset()
-    total, extrinsic = 0.0, 0.0
+    total, extrinsic, episodes = 0.0, 0.0, 0
+    episode_sums = np.zeros((2, 2))  # env -> (extrinsic, normalised r_gc) summed over its current episode
     for _ in range(30):
         _, r, _, infos = venv.step(np.ones(2, dtype=np.int64))
         total += r.sum()
         extrinsic += sum(i["extrinsic_reward"] for i in infos)
         assert np.allclose(r, [i["extrinsic_reward"] + 0.25 * i["gocu_reward"] for i in infos], atol=1e-6)
-    assert total > extrinsic
+        for env, info in enumerate(infos):
+            episode_sums[env] += (info["extrinsic_reward"], info["gocu_reward"])
+            if "episode" in info:  # Monitor's return is the extrinsic one; the wrapper adds the episode's r_gc
+                assert info["episode"]["r"] == pytest.approx(episode_sums[env, 0]) == 1.0
+                assert info["episode"]["gocu_r"] == pytest.approx(episode_sums[env, 1]) and episode_sums[env, 1] != 0
+                episode_sums[env], episodes = 0.0, episodes + 1
+    assert total > extrinsic and episodes == 2 * 5  # ChainEnv ends every 6 steps going right
     # PPO_GoCu with a sum-mode wrapper would count curiosity twice: refused
     with pytest.raises(ValueError, match="separate"):
         PPO_GoCu("MlpPolicy", GoCuVecEnvWrapper(chain_venv(), mode="sum", curiosity_kwargs=SMALL_CURIOSITY))

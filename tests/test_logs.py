@@ -3,7 +3,6 @@ heads' explained variance, the intrinsic return per episode, and no trace of the
 
 import csv
 import math
-import time
 
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
@@ -40,7 +39,15 @@ def test_logs_hold_what_each_rollout_measured(tmp_path):
 
     model.curiosity.maybe_train = spy
     episodes = Episodes()
-    before = time.time_ns()
+    started = []  # time/fps's clock as learn() set it, before the pretraining
+    setup_learn = model._setup_learn
+
+    def record_start(*args, **kwargs):
+        result = setup_learn(*args, **kwargs)
+        started.append(model.start_time)
+        return result
+
+    model._setup_learn = record_start
     model.learn(2048, callback=episodes)
 
     records = [r for r in capture.records if any(k.startswith("gocu/") for k in r)]
@@ -60,7 +67,7 @@ def test_logs_hold_what_each_rollout_measured(tmp_path):
     # the pretraining's 1024 random-policy steps: in neither the step count, the fps clock nor the Monitor files
     assert model.num_timesteps == 2048
     pretrain_s = next(r["gocu/pretrain_time_s"] for r in records if "gocu/pretrain_time_s" in r)
-    assert model.start_time - before >= int(pretrain_s * 1e9), "time/fps's clock starts after the pretraining"
+    assert model.start_time == started[0] + int(pretrain_s * 1e9), "time/fps's clock moved on by the pretraining"
     rows = 0
     for path in tmp_path.glob("*.monitor.csv"):
         with open(path) as f:

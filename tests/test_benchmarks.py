@@ -272,6 +272,9 @@ def test_behaviour_compares_agent_and_random_policy(two_runs):
         assert all(0 <= ph <= 3 for ph in r["phases"])
         assert 0.0 <= r["mean_raw_r_gc"] <= 0.1 + 1e-6  # raw r_gc in [0, alpha / delta]
     assert len(result["random"]["action_share"]) == 7  # 2 x 250 uniform draws hit every action
+    assert result["agent"]["action_share"] != result["random"]["action_share"]  # two policies, two behaviours
+    again = behaviour.main([str(model), "--env", "GoCu/DoorKey-5x5-v0", "--episodes", "2", "--seed", "3"])
+    assert again["random"]["cells_per_episode"] == result["random"]["cells_per_episode"]  # seeded: replayed the same
 
 
 def test_predictor_epochs_probe_replays_the_update_per_budget(two_runs):
@@ -675,7 +678,11 @@ def test_atari_runs_take_the_zoo_settings_and_count_rooms(se, tmp_path):
     assert [int(r["steps"]) for r in rows] == [1024, 2048, 3072]
     assert int(rows[-1]["episodes"]) >= 1  # a random agent loses its 5 lives within 3,072 steps of 8 envs
     assert float(rows[-1]["rooms_total"]) >= 1 and float(rows[-1]["rooms_mean"]) >= 1
-    assert float(rows[-1]["max_return"]) >= 0
+    resumed = json.loads((out / "checkpoints" / "ppo_gocu_seed0" / "state_3072.json").read_text())
+    # the resumed run continued the checkpoint's counts: its rooms and episodes extend those at 2,048 steps
+    assert set(state["rooms"]) <= set(resumed["rooms"]) and float(rows[-1]["rooms_total"]) == len(resumed["rooms"])
+    assert resumed["episode_rooms"][: len(state["episode_rooms"])] == state["episode_rooms"]
+    assert float(rows[-1]["max_return"]) == resumed["max_return"]
     assert "rooms visited" in summary and "best episode return" in summary
     with pytest.raises(SystemExit):  # --zoo builds the zoo files' algorithms only
         se.main([*args, "--algos", "a2c"])

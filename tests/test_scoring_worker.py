@@ -1,15 +1,15 @@
-"""Scoring in the worker thread (``submit``): the same values as scoring in the caller, bit for bit."""
+"""Scoring in the worker thread (``submit``): the same values as scoring in the caller, bit for bit (a whole
+PPO_GoCu run scored either way: tests/test_reliability.py)."""
 
 
 import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.env_util import make_vec_env
 
-from sb3_gocu import GoalCuriosityModule, PPO_GoCu
+from sb3_gocu import GoalCuriosityModule
 
-from conftest import SMALL_CURIOSITY, ChainEnv
+from conftest import SMALL_CURIOSITY
 
 SPACE = spaces.Box(0, 255, (16, 16, 3), np.uint8)
 
@@ -77,59 +77,6 @@ def test_phi_of_a_ticket_in_flight_is_taken_from_the_worker():
     expected = module.embed(np.concatenate([frame, other])).numpy()
     assert np.array_equal(first.phi, expected) and np.array_equal(second.phi, expected[::-1])
     assert np.array_equal(second.rewards, module.score_states(np.concatenate([other, frame])))
-
-
-def chain_run(before_learning=None, **kwargs) -> PPO_GoCu:
-    """PPO_GoCu on 2 ChainEnvs, 640 steps (a predictor update every 128), seed 0; ``before_learning(model)`` runs
-    just before ``learn``."""
-    th.manual_seed(0)
-    env = make_vec_env(lambda: ChainEnv(), n_envs=2, seed=0)
-    curiosity = {**SMALL_CURIOSITY, "predictor_train_freq": 128}
-    model = PPO_GoCu("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=2, seed=0, curiosity_kwargs=curiosity, **kwargs)
-    if before_learning is not None:
-        before_learning(model)
-    model.learn(640)
-    return model
-
-
-def assert_same_training(a: PPO_GoCu, b: PPO_GoCu) -> None:
-    """The same intrinsic rewards in the last rollout, policy weights and VAE and predictor weights, to the bit."""
-    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
-    for (k, v), (k2, v2) in zip(a.policy.state_dict().items(), b.policy.state_dict().items()):
-        assert k == k2 and th.equal(v, v2), k
-    sa, sb = a.curiosity.state_dict(), b.curiosity.state_dict()
-    for net in ("vae", "predictor"):
-        assert all(th.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
-
-
-def in_caller(model: PPO_GoCu) -> None:
-    """Every ticket of ``model``'s module scored in the training thread."""
-    scorer = model.curiosity.scorer
-    dispatch = scorer.dispatch
-    scorer.dispatch = lambda ticket, background: dispatch(ticket, False)
-
-
-def test_ppo_gocu_with_the_scoring_worker_matches_scoring_in_the_training_thread():
-    """A step in flight while the envs take the next, collected in order across the rollout's end: the same training
-    as every step scored in the training thread."""
-    runs = []
-    for in_worker in (False, True):
-        in_flight = []  # tickets outstanding at each collection
-
-        def before_learning(model, in_flight=in_flight, in_worker=in_worker):
-            if not in_worker:
-                in_caller(model)
-            collect = model.curiosity.collect
-            model.curiosity.collect = lambda ticket: in_flight.append(len(model.curiosity.scorer.outstanding)) or collect(ticket)
-
-        model = chain_run(before_learning)
-        model.max_in_flight = max(in_flight, default=0)
-        runs.append(model)
-    a, b = runs
-    assert a.rollout_buffer.intrinsic_rewards.any()
-    assert a.curiosity.scorer.worker is None and b.curiosity.scorer.worker is not None
-    assert_same_training(a, b)
-    assert b.max_in_flight == 2  # the step just submitted and the one before it
 
 
 def test_the_worker_computes_with_the_callers_thread_count():

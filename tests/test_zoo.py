@@ -8,6 +8,7 @@ DoorKey-5x5 is trained once per module and shared. About 2-3 minutes on 2 cores.
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import io
 import json
@@ -410,17 +411,14 @@ def test_optimize_two_workers_share_one_journal_study(tmp_path):
     storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(tmp_path / "logs" / "study.log")))
     study = optuna.load_study(study_name="gocu-test", storage=storage)
     done = [t for t in study.trials if t.state in (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)]
-    assert len(done) >= 4
-    workers = {t.user_attrs["worker"] for t in done}
-    assert len(workers) == 2, f"both processes ran trials: {workers}"
-    assert {p.pid for p in procs} == {int(w.rsplit(":", 1)[1]) for w in workers}
+    # one study, no trial lost or counted twice: trial numbers 0-3, each worker ("host:pid") ran its --n-trials 2
+    assert len(done) == len(study.trials) and sorted(t.number for t in study.trials) == [0, 1, 2, 3]
+    per_worker = collections.Counter(int(t.user_attrs["worker"].rsplit(":", 1)[1]) for t in done)
+    assert per_worker == {p.pid: 2 for p in procs}, f"trials per worker pid: {dict(per_worker)}"
     for t in done:
         assert set(GOCU_TRIAL_PARAMS) <= t.params.keys(), "the ppo_gocu sampler drew the GoCu parameters"
         # the zoo's manager hands the sampler the configured CnnPolicy: the image-only parameter is drawn too
         assert set(GOCU_IMAGE_TRIAL_PARAMS) <= t.params.keys()
-    # the two processes ran at the same time: some trials of different workers overlap
-    spans = sorted((t.datetime_start, t.datetime_complete, t.user_attrs["worker"]) for t in done)
-    assert any(a[2] != b[2] and b[0] < a[1] for i, a in enumerate(spans) for b in spans[i + 1 :])
 
 
 PLOT_TRAIN = textwrap.dedent(

@@ -37,8 +37,9 @@ def test_settings_are_fixed_at_construction():
 def test_unknown_and_retired_names_are_refused_with_the_name():
     with pytest.raises(TypeError, match=r"unknown settings \['n_goal'\]"):
         GoalCuriosityModule(BOX, n_goal=3)
-    with pytest.raises(TypeError, match=r"\['predictor_lead'\] retired"):
-        GoalCuriosityModule(BOX, predictor_lead=1)
+    for name in ("predictor_lead", "train_in_background", "vae_shards", "scoring_dtype", "overlap_ppo_update"):
+        with pytest.raises(TypeError, match=rf"\['{name}'\] retired"):
+            GoalCuriosityModule(BOX, **{name: 1})
 
 
 def test_the_module_keeps_at_most_40_keywords():

@@ -188,9 +188,3 @@ def test_updates_run_in_the_caller_with_its_thread_count(caller, monkeypatch):
     assert th.get_num_threads() == caller
     assert {name for name, _, _ in seen} == {"vae", "predictor"}
     assert {(n, ident) for _, n, ident in seen} == {(caller, threading.get_ident())}
-
-
-@pytest.mark.parametrize("name", ["train_in_background", "vae_shards", "scoring_dtype", "overlap_ppo_update"])
-def test_retired_settings_are_refused_by_name(name):
-    with pytest.raises(TypeError, match=rf"\['{name}'\] retired"):
-        GoalCuriosityModule(ChainEnv().observation_space, **SMALL_CURIOSITY, **{name: 1})

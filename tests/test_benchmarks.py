@@ -472,6 +472,15 @@ def test_ppo_sum_resumes_with_its_module(se, tmp_path):
     resumed = th.load(ckpt / "curiosity_3072.pth", weights_only=True)["counters"]
     # the module continued from the checkpoint's counts (a fresh one would hold 1,024 recorded steps, not 2,048 more)
     assert resumed["n_recorded_steps"] == state["counters"]["n_recorded_steps"] + 1024
+    # the replay-age probe scores the newer module's states with both checkpoints' curiosity
+    probe = load_script("replay_age", "benchmarks/probes/replay_age.py")
+    r = probe.main([str(ckpt), "--states", "64"])
+    assert (r["older"], r["newer"], r["states"]) == (2048, 3072, 64)
+    assert probe.load_module(ckpt, 3072).n_recorded_steps == resumed["n_recorded_steps"]
+    assert r["mean_newer"] > 0 and r["mean_abs_change_rel"] > 0, "1,024 steps of updates and new goals change the scores"
+    assert probe.ranks(np.array([0.3, 0.1, 0.2])).tolist() == [2, 0, 1]
+    with pytest.raises(SystemExit):
+        probe.main([str(ckpt), "--older", "3072", "--newer", "2048"])
 
 
 @pytest.mark.parametrize("algo", ["a2c_sum", "dqn_sum"])

@@ -85,7 +85,8 @@ class _RewardReport:
         self._episode_sums[env] = self._episode_sums.get(env, 0.0) + float(normalized)
         if isinstance(info.get("episode"), dict):
             info["episode"]["gocu_r"] = self._episode_sums.pop(env)
-        return float(extrinsic) if self.intrinsic_coef is None else float(extrinsic) + self.intrinsic_coef * float(normalized)
+        # by mode, not by intrinsic_coef: an env stack pickled by an older version holds 0.25 in mode="separate" too
+        return float(extrinsic) + self.intrinsic_coef * float(normalized) if self.mode == "sum" else float(extrinsic)
 
 
 class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):

@@ -188,3 +188,17 @@ def test_updates_run_in_the_caller_with_its_thread_count(caller, monkeypatch):
     assert th.get_num_threads() == caller
     assert {name for name, _, _ in seen} == {"vae", "predictor"}
     assert {(n, ident) for _, n, ident in seen} == {(caller, threading.get_ident())}
+
+
+def test_a_separate_mode_wrapper_pays_extrinsic_rewards_even_holding_a_coefficient():
+    """An env stack pickled by an older version holds intrinsic_coef 0.25 in mode="separate" too: the reward the
+    algorithm sees stays extrinsic (PPO_GoCu adds the curiosity itself), whatever the coefficient."""
+    venv = GoCuVecEnvWrapper(chain_venv(), mode="separate", curiosity_kwargs=SMALL_CURIOSITY)
+    assert venv.intrinsic_coef is None
+    venv.intrinsic_coef = 0.25  # as unpickled from an older checkpoint
+    venv.module.pretrain()
+    venv.reset()
+    for _ in range(10):
+        _, rewards, _, infos = venv.step(np.ones(2, dtype=np.int64))
+        assert np.array_equal(rewards, [i["extrinsic_reward"] for i in infos])
+    assert any(i["gocu_reward"] != 0 for i in infos)

@@ -6,7 +6,9 @@ Trains PPO_GoCu with the paper's settings (16 envs, n_steps 128, batch 256, 4 ep
 sigma 0.25; GoCu defaults: K = 50, goal buffer 1500, memory bank 10,000, P_m = 20k, P_vae = 100k, VAE
 pretraining on 10,000 random-policy observations) and samples the process's resident set size (psutil RSS)
 at every rollout end (every ``n_envs * n_steps`` = 2048 steps). Prints the command, seed and machine, a
-sample table, and a summary:
+sample table (each line also says where the curiosity's time went since the line before: the rollout's own time in
+the module, the part of it spent waiting for the scoring worker, the worker's scoring, which overlaps the env
+steps, and the VAE and predictor updates), and a summary:
 
 * start: RSS after the imports, before the model exists;
 * warm: RSS at the first rollout end after ``--warmup`` steps (default 25% of the run, at least one P_vae
@@ -67,6 +69,13 @@ class RSSSampler(BaseCallback):
         self.print_every = print_every
         self.t0 = time.perf_counter()
         self._next_print = 0
+        self._at_print = (0.0, (0.0,) * 5)  # (seconds, curiosity timers) at the last printed sample
+
+    def _timers(self) -> tuple[float, ...]:
+        """Cumulative seconds: the rollout's own time in the module (waiting included), waiting for the scoring
+        worker, scoring in the worker (overlapping), VAE training, predictor training."""
+        m = self.model.curiosity
+        return m.time_inference, m.scorer.time_waiting, m.scorer.time_in_worker, m.time_vae, m.time_predictor
 
     def _on_step(self) -> bool:
         return True
@@ -76,10 +85,14 @@ class RSSSampler(BaseCallback):
         self.samples.append((self.num_timesteps, time.perf_counter() - self.t0, r))
         if self.num_timesteps >= self._next_print:
             m = self.model.curiosity
+            seconds, timers = self.samples[-1][1], self._timers()
+            d = [now - before for now, before in zip(timers, self._at_print[1])]
+            self._at_print = (seconds, timers)
             print(
-                f"{self.num_timesteps:>9d} steps {self.samples[-1][1]:8.0f} s  RSS {r / MB:8.1f} MB  "
+                f"{self.num_timesteps:>9d} steps {seconds:8.0f} s  RSS {r / MB:8.1f} MB  "
                 f"goals {m.goal_buffer.size}  memory {m.memory.size}  trajectories {len(m.trajectories)}  "
-                f"phi cache {len(m.scorer.phi_memo)}",
+                f"phi cache {len(m.scorer.phi_memo)}  |  since the last line: curiosity {d[0]:.0f} s (waiting {d[1]:.0f}), "
+                f"worker {d[2]:.0f} s, VAE {d[3]:.0f} s, predictor {d[4]:.0f} s",
                 flush=True,
             )
             self._next_print += self.print_every

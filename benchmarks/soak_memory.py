@@ -69,7 +69,7 @@ class RSSSampler(BaseCallback):
         self.print_every = print_every
         self.t0 = time.perf_counter()
         self._next_print = 0
-        self._at_print = (0.0, (0.0,) * 5)  # (seconds, curiosity timers) at the last printed sample
+        self._timers_at_print = (0.0,) * 5  # the curiosity timers at the last printed sample
 
     def _timers(self) -> tuple[float, ...]:
         """Cumulative seconds: the rollout's own time in the module (waiting included), waiting for the scoring
@@ -86,8 +86,8 @@ class RSSSampler(BaseCallback):
         if self.num_timesteps >= self._next_print:
             m = self.model.curiosity
             seconds, timers = self.samples[-1][1], self._timers()
-            d = [now - before for now, before in zip(timers, self._at_print[1])]
-            self._at_print = (seconds, timers)
+            d = [now - before for now, before in zip(timers, self._timers_at_print)]
+            self._timers_at_print = timers
             print(
                 f"{self.num_timesteps:>9d} steps {seconds:8.0f} s  RSS {r / MB:8.1f} MB  "
                 f"goals {m.goal_buffer.size}  memory {m.memory.size}  trajectories {len(m.trajectories)}  "

@@ -48,7 +48,7 @@ def monitors_paused(env: VecEnv) -> Iterator[None]:
 
 
 #: the module's running counts of its guards (``module.stats``), logged when they change
-GUARD_COUNTERS = ("nonfinite_rewards", *(f"{net}_{name}" for net in ("vae", "predictor")
+GUARD_COUNTERS = ("nonfinite_rewards", "vae_collapsed_updates", *(f"{net}_{name}" for net in ("vae", "predictor")
                                          for name in ("skipped_updates_total", "nonfinite_parameters", "restored_updates")))
 #: logged names of the module's figures that differ from their keys
 LOG_NAMES = {

@@ -806,3 +806,24 @@ def test_ppo_gocu_scoring_in_the_worker_matches_the_synchronous_run(episodic):
     assert not differences(parameters(a), parameters(b))
     assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())
     assert seen[0] == seen[1]
+
+
+def test_an_update_that_embeds_every_observation_to_one_point_is_rolled_back():
+    module = recorded_module(vae_patience=0)
+    before = copy.deepcopy(module.vae.state_dict())
+    real_step, dense = module.trainer.vae_optimizer.step, module.vae.encoder[2]
+
+    def killing_step(*args, **kwargs):  # every unit of the embedding layer negative on every observation
+        real_step(*args, **kwargs)
+        with th.no_grad():
+            dense.weight.zero_()
+            dense.bias.fill_(-1.0)
+
+    module.trainer.vae_optimizer.step = killing_step
+    with pytest.warns(UserWarning, match="embedded every frame to one point"):
+        out = module.train_vae()
+    assert not differences(before, module.vae.state_dict()), "the encoder of before the update is back"
+    assert out["vae_collapsed"] == 1 and out["vae_best_epoch"] == 0
+    assert module.stats["vae_collapsed_updates"] == 1
+    phi = module.embed(module.memory.observations[: module.memory.size])
+    assert len(th.unique(phi, dim=0)) > 1

@@ -364,6 +364,7 @@ class GoalCuriosityModule:
         self.collect_all()
         t0 = time.perf_counter()
         guard_update("vae", self.vae, self.trainer.vae_optimizer, fit.snapshot, fit.skipped, self.stats)
+        self.stats["vae_collapsed_updates"] = self.stats.get("vae_collapsed_updates", 0.0) + fit.collapsed
         if fit.best_epoch > 0:  # otherwise the VAE kept its weights: every embedding is still valid
             self._use_encoder()
             self._refresh_active_goals()

@@ -94,12 +94,13 @@ class VaeFit:
     best_epoch: int  #: the epoch whose weights the VAE keeps (0: the starting ones)
     val_loss_start: float  #: held-out loss before the fit (NaN without early stopping)
     val_loss: float  #: best held-out loss (NaN without early stopping)
+    collapsed: bool = False  #: the fit embedded distinct frames to one point and was rolled back
 
     def stats(self, seconds: float) -> dict[str, float]:
         """The figures logged for the update (``seconds``: its whole time)."""
         return {"vae_loss": mean_or_nan(self.losses), "vae_observations": float(self.n), "vae_skipped_updates": float(self.skipped),
                 "vae_epochs_run": float(self.epochs_run), "vae_best_epoch": float(self.best_epoch), "vae_val_loss": self.val_loss,
-                "vae_time": seconds}
+                "vae_collapsed": float(self.collapsed), "vae_time": seconds}
 
 
 @dataclasses.dataclass
@@ -285,11 +286,28 @@ class Trainer:
                     elif stopping.stop:
                         break
             epochs_run = epoch + 1
+            best_epoch = stopping.best_epoch if early else epochs_run
             if early and stopping.best_epoch < epochs_run:
                 self.vae.load_state_dict(best_state if best_state is not None else saved[0])
             self.vae.eval()
+            collapsed = best_epoch > 0 and self.embeds_to_one_point(job.data if job.val_data is None else job.val_data)
+            if collapsed:  # every goal would share one embedding: keep the encoder of before the fit
+                restore(self.vae, self.vae_optimizer, saved)
+                self.vae.eval()
+                best_epoch = 0
+                warnings.warn("GoCu: a VAE update embedded every frame to one point (dead encoder units); the update was rolled back")
             return VaeFit(saved, losses, skipped, n + (0 if job.val_data is None else len(job.val_data)), time.perf_counter() - t0,
-                          epochs_run, stopping.best_epoch if early else epochs_run, start_loss, stopping.best_loss)
+                          epochs_run, best_epoch, start_loss, stopping.best_loss, collapsed)
+
+    @th.no_grad()
+    def embeds_to_one_point(self, data: np.ndarray) -> bool:
+        """Whether the VAE embeds the first 1024 of ``data`` to one finite point although they hold distinct observations
+        (non-finite embeddings are :func:`guard_update`'s)."""
+        data = data[:1024]
+        if len(distinct_rows(data)[0]) < 2:
+            return False
+        phi = self.vae.embed(self.adapter.to_tensor(data, self.device))
+        return bool(th.isfinite(phi).all()) and bool(th.equal(phi.amin(0), phi.amax(0)))
 
     # ------------------------------------------------------------------ predictor
     def predictor_job(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor) -> PredictorJob | None:

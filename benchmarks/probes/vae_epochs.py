@@ -16,6 +16,9 @@ multiplicities as weights, Adam state of the checkpoint) and measures after ever
 * ``nn agree``: fraction of held-out observations whose nearest neighbour among the goal buffer's observations
   (``--fresh``: among the training observations) is the same under phi_e as under phi_ref (the embedding's
   geometry is what the goal buffer and the predictor see);
+* ``alive``: fraction of the embedding's units positive on some held-out observation (0: every observation embeds
+  to one point, a dead encoder; the module rolls such an update back, docs/reliability.md);
+* ``spread``: std of phi over the held-out observations, mean over units;
 * the seconds of training so far (with ``--threads`` torch threads).
 
 Sources of the memory bank: ``--fresh ENV`` builds a module with the default settings on ENV and fills it with
@@ -86,7 +89,8 @@ def probe(mod: GoalCuriosityModule, epochs: int, val_frac: float, seed: int, ref
             loss, recon, kl = vae_loss(mod.vae, x_val, mod.vae_beta, w_val)
             phi = mod.vae.embed(x_val)
             nn_idx = th.cdist(phi, mod.vae.embed(refs)).argmin(1)
-        return {"val_loss": float(loss), "val_recon": float(recon), "val_kl": float(kl), "phi": phi, "nn": nn_idx}
+        return {"val_loss": float(loss), "val_recon": float(recon), "val_kl": float(kl), "phi": phi, "nn": nn_idx,
+                "alive": float((phi > 0).any(0).float().mean()), "spread": float(phi.std(0).mean())}
 
     start = measure()
     rows: list[dict[str, Any]] = []
@@ -101,7 +105,7 @@ def probe(mod: GoalCuriosityModule, epochs: int, val_frac: float, seed: int, ref
         clock["t"] = time.perf_counter()
 
     mod.trainer.generator.manual_seed(seed)
-    mod.trainer.fit_vae(VaeJob(train_data, train_w, epochs, pixel_weights=job.pixel_weights), on_epoch=on_epoch)
+    fit = mod.trainer.fit_vae(VaeJob(train_data, train_w, epochs, pixel_weights=job.pixel_weights), on_epoch=on_epoch)
     ref = rows[-1]
     base = float((ref["phi"] - start["phi"]).norm(dim=1).mean())
     for r in rows:
@@ -116,7 +120,7 @@ def probe(mod: GoalCuriosityModule, epochs: int, val_frac: float, seed: int, ref
             if stopping.stop:
                 break
         stops[patience] = (r["epoch"], stopping.best_epoch)
-    return {"stops": stops, "start": start, "rows": rows, "distinct": len(data), "train": len(train), "val": n_val, "bank": mod.memory.size}
+    return {"stops": stops, "collapsed": fit.collapsed, "start": start, "rows": rows, "distinct": len(data), "train": len(train), "val": n_val, "bank": mod.memory.size}
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -158,11 +162,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     print(f"memory bank {out['bank']}, distinct {out['distinct']}: train {out['train']}, held out {out['val']}; "
           f"vae_batch_size {mod.vae_batch_size}, beta {mod.vae_beta}")
     s = out["start"]
-    print(f"before the update: val loss {s['val_loss']:.2f} (recon {s['val_recon']:.2f}, kl {s['val_kl']:.2f}), nn agree {s['nn_agree']:.3f}")
-    print(f"{'epoch':>5} {'train s':>8} {'val loss':>9} {'recon':>8} {'kl':>6} {'phi drift':>9} {'nn agree':>8}")
+    print(f"before the update: val loss {s['val_loss']:.2f} (recon {s['val_recon']:.2f}, kl {s['val_kl']:.2f}), nn agree {s['nn_agree']:.3f}, "
+          f"alive {s['alive']:.3f}, spread {s['spread']:.4g}")
+    print(f"{'epoch':>5} {'train s':>8} {'val loss':>9} {'recon':>8} {'kl':>6} {'phi drift':>9} {'nn agree':>8} {'alive':>6} {'spread':>9}")
     for r in out["rows"]:
         print(f"{r['epoch']:>5} {r['train_s']:>8.2f} {r['val_loss']:>9.2f} {r['val_recon']:>8.2f} {r['val_kl']:>6.2f} "
-              f"{r['phi_drift']:>9.3f} {r['nn_agree']:>8.3f}")
+              f"{r['phi_drift']:>9.3f} {r['nn_agree']:>8.3f} {r['alive']:>6.3f} {r['spread']:>9.4g}")
+    if out["collapsed"]:
+        print("the update embedded every observation to one point: the module rolls it back")
     for patience, (stop, best) in out["stops"].items():
         print(f"vae_patience {patience} would stop after epoch {stop} and keep epoch {best} (0: the weights before the update)")
     return out

@@ -89,7 +89,7 @@ def sawyer_curiosity(model: PPO_GoCu, env_id: str, seed: int = 0, max_steps: int
     x = module.adapter.to_tensor(to_module_layout(frames[idx], module.adapter.raw_shape), module.device)
     recon = module.vae.reconstruct(x).cpu().numpy()
     out["shown_steps"], out["shown"] = idx, frames[idx] / 255.0
-    out["recon"] = np.clip(recon.transpose(0, 2, 3, 1) if recon.shape[1] in (1, 3) else recon, 0, 1)
+    out["recon"] = np.clip(recon.transpose(0, 2, 3, 1), 0, 1)  # the ConvVAE's output is (n, C, H, W)
     return out
 
 

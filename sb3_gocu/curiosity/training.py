@@ -292,8 +292,7 @@ class Trainer:
             self.vae.eval()
             collapsed = best_epoch > 0 and self.embeds_to_one_point(job.data if job.val_data is None else job.val_data)
             if collapsed:  # every goal would share one embedding: keep the encoder of before the fit
-                restore(self.vae, self.vae_optimizer, saved)
-                self.vae.eval()
+                restore(self.vae, self.vae_optimizer, saved)  # a state dict: the VAE stays in eval mode
                 best_epoch = 0
                 warnings.warn("GoCu: a VAE update embedded every frame to one point (dead encoder units); the update was rolled back")
             return VaeFit(saved, losses, skipped, n + (0 if job.val_data is None else len(job.val_data)), time.perf_counter() - t0,

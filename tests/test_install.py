@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import os
 import shutil
+import site
 import subprocess
 import sys
 import zipfile
@@ -108,15 +109,31 @@ def build_wheel(out: Path) -> Path:
     return wheel
 
 
+def see_site_packages_of_this_interpreter(venv_python: Path) -> None:
+    """Let a new venv see the site-packages of the interpreter running the tests, after its own.
+
+    ``venv --system-site-packages`` does not do it when that interpreter is itself a venv's: the new venv would see
+    the *base* interpreter's site-packages, without the dependencies. A ``.pth`` line that starts with ``import``
+    runs at start-up; ``site.addsitedir`` appends each directory to ``sys.path`` (after the venv's own
+    site-packages) and runs the ``.pth`` files there, as for the interpreter running the tests."""
+    dirs = [d for d in dict.fromkeys(site.getsitepackages() + [p for p in sys.path if Path(p).name in ("site-packages", "dist-packages")])
+            if Path(d).is_dir()]
+    own = subprocess.run([str(venv_python), "-c", "import site; print(site.getsitepackages()[0])"],
+                         check=True, capture_output=True, text=True, timeout=120).stdout.strip()
+    (Path(own) / "_sb3_gocu_test_parent_site.pth").write_text(
+        "import site; " + "; ".join(f"site.addsitedir({d!r})" for d in dirs) + "\n")
+
+
 @pytest.mark.slow
 def test_wheel_installs_and_trains_from_an_empty_folder(tmp_path):
-    """Build a wheel, install it (``--no-deps``) into a venv made with ``--system-site-packages`` (torch and the
-    other dependencies come from this interpreter's site-packages), and from an empty folder run the launcher
-    with the config file the wheel carries. About a minute on 2 busy cores.
+    """Build a wheel, install it (``--no-deps``) into a new venv that sees this interpreter's site-packages after
+    its own (torch and the other dependencies come from there, whether this interpreter is a venv's or the
+    system's), and from an empty folder run the launcher with the config file the wheel carries. About a minute on
+    2 busy cores.
 
     The interpreter running the tests may have the package installed editable: its site-packages then holds
     setuptools' ``__editable___sb3_gocu_*_finder``, which the venv sees too. That finder is appended to
-    ``sys.meta_path``, after the ordinary path finder, and the venv's site-packages comes before the system one on
+    ``sys.meta_path``, after the ordinary path finder, and the venv's site-packages comes before the others on
     ``sys.path``, so the venv's copy wins; the test checks that ``sb3_gocu`` is imported from the venv (with
     ``PYTHONPATH`` removed and ``PYTHONNOUSERSITE=1``, so that neither can bring the source tree in)."""
     wheel = build_wheel(tmp_path / "dist")
@@ -125,12 +142,13 @@ def test_wheel_installs_and_trains_from_an_empty_folder(tmp_path):
     assert {f"sb3_gocu/hyperparams/{name}" for name in CONFIG_FILES} <= set(names)
 
     venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--without-pip", "--system-site-packages", str(venv)], check=True, timeout=120)
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
     python = venv / "bin" / "python"
+    see_site_packages_of_this_interpreter(python)
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "SB3_GOCU_HYPERPARAMS")}
     env.update(PYTHONNOUSERSITE="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    # the system pip (seen through --system-site-packages) installs into the venv; --ignore-installed: the editable
-    # sb3-gocu of the system site is not uninstalled
+    # this interpreter's pip (seen through the .pth file) installs into the venv; --ignore-installed: the editable
+    # sb3-gocu of the test interpreter's site is not uninstalled
     subprocess.run(
         [str(python), "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--ignore-installed", str(wheel)],
         check=True, capture_output=True, text=True, env=env, timeout=300,

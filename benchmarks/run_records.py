@@ -25,7 +25,7 @@ from sb3_gocu.checkpoints import atomic_write
 COLUMNS = (
     "algo", "seed", "steps", "episodes", "window_episodes", "mean_return", "success_rate", "key_rate", "door_rate",
     "final_distance", "final_success", "max_return", "rooms_mean", "rooms_total",
-    "intrinsic_mean", "intrinsic_std", "intrinsic_norm_mean", "goals", "wall_time_s", "fps",
+    "intrinsic_mean", "intrinsic_std", "intrinsic_norm_mean", "goals", "predictor_auc_far", "predictor_auc_goals", "wall_time_s", "fps",
 )
 
 

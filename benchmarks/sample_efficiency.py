@@ -41,6 +41,8 @@ first rollout end past each multiple of a PPO rollout's steps, ``--n-envs`` x ``
 * ``intrinsic_mean`` / ``intrinsic_std``: mean and std of the raw r_gc (eq 13, ``infos["gocu_raw_reward"]``)
   over the rollout's steps, ``intrinsic_norm_mean``: mean of the normalised r_gc (eq 14), ``goals``: goals in the
   goal buffer; empty for PPO; for ppo_rnd the intrinsic columns are RND's raw and normalised reward;
+* ``predictor_auc_far`` / ``predictor_auc_goals``: the held-out AUCs of the last predictor update (near goals against
+  far ones of the same episode / against goals of the buffer; ``GoalCuriosityModule.pop_reward_stats``);
 * ``wall_time_s``: training wall time of the run so far (summed over resumed sessions; the time between
   the last checkpoint and a crash is not counted, those steps are redone); ``fps``: steps/s of that rollout (PPO: its
   collection, the update excluded; A2C and DQN: the steps since the previous row, their updates included).
@@ -100,6 +102,7 @@ import sb3_gocu  # noqa: F401  (registers the GoCu ids)
 from sb3_gocu import ExplorationCallback, GoCuCallback, GoCuVecEnvWrapper, PaperCNN, PPO_GoCu
 from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.curiosity.goals import GOAL_STRATEGIES
+from sb3_gocu.curiosity.reachability import QUALITY_KEYS
 from sb3_gocu.wrappers import find_gocu_module
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
@@ -218,7 +221,8 @@ class SampleEfficiencyCallback(BaseCallback):
         dt = time.perf_counter() - self._t_rollout
         module = self.run.module(self.model)
         goals = module.goal_buffer.size if module is not None else float("nan")
-        self.run.add_row(self.num_timesteps, mean, std, norm, (self.num_timesteps - self._steps_rollout) / max(dt, 1e-9), goals)
+        quality = {k: module.stats.get(k, float("nan")) if module is not None else float("nan") for k in QUALITY_KEYS}
+        self.run.add_row(self.num_timesteps, mean, std, norm, (self.num_timesteps - self._steps_rollout) / max(dt, 1e-9), goals, quality)
 
 
 class Run:
@@ -274,7 +278,8 @@ class Run:
         return self.wall_before + time.perf_counter() - self.session_start
 
     def add_row(
-        self, steps: int, intrinsic_mean: float, intrinsic_std: float, intrinsic_norm: float, fps: float, goals: float = float("nan")
+        self, steps: int, intrinsic_mean: float, intrinsic_std: float, intrinsic_norm: float, fps: float, goals: float = float("nan"),
+        quality: dict[str, float] | None = None,
     ) -> None:
         w = np.asarray(self.window, dtype=np.float64)
         ph = np.asarray(self.phases, dtype=np.int64)
@@ -299,6 +304,7 @@ class Run:
             "intrinsic_std": intrinsic_std,
             "intrinsic_norm_mean": intrinsic_norm,
             "goals": goals,
+            **{k: (quality or {}).get(k, float("nan")) for k in QUALITY_KEYS},
             "wall_time_s": self.wall_time(),
             "fps": fps,
         }

@@ -140,7 +140,7 @@ BOX = ChainEnv().observation_space
         (dict(label_threshold=None), r"label_threshold must be a finite number, got None"),
         (dict(alpha=True), r"alpha must be a finite number, got True"),
         (dict(vae_lr=[1e-3]), r"vae_lr must be a finite number, got \[0.001\]"),
-        (dict(soft_labels="no"), r"soft_labels must be True or False, got 'no'"),
+        (dict(vae_dedupe="no"), r"vae_dedupe must be True or False, got 'no'"),
         (dict(predictor_dedupe=0), r"predictor_dedupe must be True or False, got 0"),
         (dict(vae_dedupe=None), r"vae_dedupe must be True or False, got None"),
         (dict(first_visit_distance=1), r"first_visit_distance must be True or False, got 1"),
@@ -195,8 +195,8 @@ def test_callback_and_wrappers_refuse_what_is_not_theirs():
 def test_numpy_scalars_are_accepted_as_settings():
     """A sweep or a config hands numpy scalars: they pass the type checks and mean their values."""
     module = GoalCuriosityModule(BOX, **{**SMALL_CURIOSITY, "n_goals": np.int64(3), "reward_scale": np.float32(4.0),
-                                        "soft_labels": np.bool_(False), "vae_beta": np.float64(0.2)})
-    assert (module.n_goals, module.reward_scale, module.soft_labels, module.vae_beta) == (3, 4.0, False, 0.2)
+                                        "vae_dedupe": np.bool_(False), "vae_beta": np.float64(0.2)})
+    assert (module.n_goals, module.reward_scale, module.vae_dedupe, module.vae_beta) == (3, 4.0, False, 0.2)
     model = PPO_GoCu("MlpPolicy", chain_venv(1), n_steps=np.int64(8), batch_size=8, intrinsic_coef=np.float64(0.5),
                      curiosity_kwargs=SMALL_CURIOSITY)
     assert (model.intrinsic_coef, model.n_steps) == (0.5, 8)

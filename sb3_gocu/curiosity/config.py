@@ -17,6 +17,10 @@ from sb3_gocu.curiosity.reward import AGGREGATIONS, REVISIT_DECAYS
 
 #: ``vae_pixel_weighting`` of image observations when it is None (the default); measured on DoorKey-8x8
 DEFAULT_PIXEL_WEIGHTING = 0.5
+#: what the predictor learns from (``pair_labels``)
+PAIR_LABELS = ("reachability", "eq16")
+#: reachability labels: a goal at most this many steps after the state is mastered (Episodic Curiosity's k)
+NEAR_DISTANCE = 5
 #: fraction of the distinct observations held out for the VAE's early stopping (``vae_patience``)
 VAE_HOLDOUT = 0.1
 #: distinct observations remembered per env and episode (goal candidates, reward memo, visit counts)
@@ -30,6 +34,7 @@ EPISODE_MEMORY = 4096
 PAPER_CURIOSITY_KWARGS: Mapping[str, Any] = MappingProxyType(
     dict(
         revisit_decay="none",  # every visit of a state pays eq 13 (default: only the first visit in an episode)
+        pair_labels="eq16",  # pairs of one episode at gaps 1..d_max labelled by eq 15-16 (default: reachability pairs)
         first_visit_distance=False,  # dist(s, g) of eq 15 is the step gap y (default: steps to g's first visit)
         predictor_epochs=15,  # 15 epochs per update (default 1: on a bounded draw 15 epochs overfit it)
         predictor_dedupe=False,  # every drawn pair once (default: distinct pairs weighted by count)
@@ -55,12 +60,12 @@ class CuriosityConfig:
     reward_scale: float = 10.0  #: delta of eq 13 (> 0)
     revisit_decay: str = "first_visit"  #: pay of a revisit in an episode: "none", "inverse_sqrt" or "first_visit"
     intrinsic_gamma: float = 0.99  #: discount of the intrinsic returns (eq 14 and the curiosity GAE)
+    pair_labels: str = "reachability"  #: what the predictor learns: "reachability" (near / far / goal-buffer pairs) or "eq16"
     prior_weight: float = 3.0  #: lambda of eq 15
     distance_weight: float = 1.0  #: beta of eq 15
     label_threshold: float = 15.0  #: a of eq 16 (> 0)
     label_slope: float = 0.8  #: b of eq 16 (> 0)
-    max_distance: int = 30  #: d_max, the largest step gap of a training pair (>= 1)
-    soft_labels: bool = True  #: train on p_skill as a soft target (True) or on Bernoulli(p_skill) labels
+    max_distance: int = 30  #: d_max: eq16 labels: the largest step gap of a pair; reachability: the smallest gap of a far one
     first_visit_distance: bool = True  #: dist(s, g) of eq 15 is the steps to g's first visit after s, not y
     predictor_hidden: Sequence[int] = (512, 512, 512, 512, 512)  #: hidden layer sizes of the predictor
     predictor_lr: float = 5e-4  #: Adam learning rate of the predictor
@@ -95,7 +100,7 @@ class CuriosityConfig:
         for name in numbers:
             value = getattr(self, name)
             check(is_number(value) and math.isfinite(value), f"{name} must be a finite number, got {value!r}")
-        for name in ("soft_labels", "first_visit_distance", "predictor_dedupe", "vae_dedupe"):
+        for name in ("first_visit_distance", "predictor_dedupe", "vae_dedupe"):
             check(is_flag(getattr(self, name)), f"{name} must be True or False, got {getattr(self, name)!r}")
         check(self.goal_buffer_size >= 1, f"goal_buffer_size must be >= 1, got {self.goal_buffer_size}")
         check(1 <= self.n_goals <= self.goal_buffer_size,
@@ -112,6 +117,10 @@ class CuriosityConfig:
         check(self.label_threshold > 0, f"label_threshold (a) must be > 0, got {self.label_threshold}")
         check(self.label_slope > 0, f"label_slope (b) must be > 0, got {self.label_slope}")
         check(self.max_distance >= 1, f"max_distance (d_max) must be >= 1, got {self.max_distance}")
+        check(self.pair_labels in PAIR_LABELS, f"pair_labels must be one of {PAIR_LABELS}, got {self.pair_labels!r}")
+        check(self.pair_labels != "reachability" or self.max_distance > NEAR_DISTANCE,
+              f"max_distance (d_max) must be > {NEAR_DISTANCE} with pair_labels='reachability' (a far pair is d_max or more steps "
+              f"apart, a near one at most {NEAR_DISTANCE}), got {self.max_distance}")
         for name in ("predictor_batch_size", "predictor_pairs", "predictor_train_freq", "embed_dim", "latent_dim", "vae_batch_size",
                      "vae_train_freq", "memory_size"):
             check(getattr(self, name) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")

@@ -30,23 +30,24 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_gocu.curiosity.checks import check
-from sb3_gocu.curiosity.config import DEFAULT_PIXEL_WEIGHTING, CuriosityConfig
+from sb3_gocu.curiosity.config import DEFAULT_PIXEL_WEIGHTING, NEAR_DISTANCE, CuriosityConfig
 from sb3_gocu.curiosity import persistence
-from sb3_gocu.curiosity.episodes import Episodes
+from sb3_gocu.curiosity.episodes import Episodes, memo_from_state, memo_to_state
 from sb3_gocu.curiosity.goals import GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE
 from sb3_gocu.curiosity.observations import ObservationAdapter
+from sb3_gocu.curiosity.reachability import PREDICTOR_HOLDOUT, QUALITY_KEYS, QualityPairs, reachability_pairs
 from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, revisit_factor
 from sb3_gocu.curiosity.scoring import Scorer, ScoringTicket, eq13_rows
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, observation_key
 from sb3_gocu.curiosity.training import (
-    PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update,
+    PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update, nonfinite_entries,
 )
 
 #: keywords of earlier versions: experiments removed, or speed-ups now fixed (docs/results.md, "What was retired")
 RETIRED = ("train_in_background", "predictor_lead", "update_threads", "vae_shards", "refit_predictor_after_vae", "train_dtype",
            "record_start_states", "split_updates", "queue_during_update", "overlap_ppo_update", "scoring_process", "scoring_dtype",
-           "vae_holdout", "episode_memory", "vae_pretrain_patience")
+           "vae_holdout", "episode_memory", "vae_pretrain_patience", "soft_labels")
 
 
 class GoalCuriosityModule:
@@ -351,13 +352,28 @@ class GoalCuriosityModule:
             self.last_vae_update = self.n_recorded_steps
         return job
 
+    def predictor_holdout(self) -> int:
+        """The newest states of each env that a predictor update holds out to score itself: ``PREDICTOR_HOLDOUT`` of
+        the states an env holds, at least 2 d_max (so that far pairs occur among them), at most half."""
+        filled = np.minimum(self.trajectories.count, self.trajectories.capacity)
+        if len(filled) == 0:
+            return 0
+        return min(max(int(round(PREDICTOR_HOLDOUT * filled.max())), 2 * self.config.max_distance), int(filled.min()) // 2)
+
     def predictor_job(self) -> PredictorJob | None:
-        """The job of a predictor update on pairs drawn from the trajectory store now; marks the update done."""
+        """The job of a predictor update on pairs drawn from the trajectory store now (``pair_labels``), with held-out
+        pairs of the newest states to score it; marks the update done."""
         self.collect_all()  # the trajectory store takes a state's phi when its ticket is collected
-        cfg = self.config
-        pairs = self.trajectories.sample_pairs(cfg.predictor_pairs, cfg.max_distance, self.rng, first_visit=cfg.first_visit_distance)
+        cfg, store = self.config, self.trajectories
+        holdout = self.predictor_holdout()
+        if cfg.pair_labels == "eq16":
+            pairs = (*store.sample_pairs(cfg.predictor_pairs, cfg.max_distance, self.rng, first_visit=cfg.first_visit_distance,
+                                         holdout=holdout), None)
+        else:
+            pairs = reachability_pairs(store, self.goal_buffer, cfg.predictor_pairs, NEAR_DISTANCE, cfg.max_distance, self.rng, holdout)
+        quality = QualityPairs.draw(store, self.goal_buffer, cfg.max_distance, self.rng, holdout)
         self.last_predictor_update = self.n_recorded_steps
-        return self.trainer.predictor_job(*pairs)
+        return self.trainer.predictor_job(*pairs, quality=quality)
 
     def _take_vae(self, fit: VaeFit) -> dict[str, float]:
         """Take a VAE fit into use: re-embed the goals, drop the embeddings of the old encoder."""
@@ -436,13 +452,15 @@ class GoalCuriosityModule:
 
     def pop_reward_stats(self) -> dict[str, float]:
         """The figures of the steps since the last call: mean and std of the raw r_gc recorded (when any was), the
-        scorer's memo hit rate, the seconds spent scoring; and the sizes of the goal buffer and the memory bank and
-        the normaliser's std now."""
+        scorer's memo hit rate, the seconds spent scoring; the sizes of the goal buffer and the memory bank and the
+        normaliser's std now; and the held-out AUCs of the last predictor update (``predictor_auc_far``: near goals
+        against far ones of the same episode; ``predictor_auc_goals``: near goals against goals of the buffer)."""
         hits, lookups = self.scorer.cache_hits - self._hits_at_pop[0], self.scorer.cache_lookups - self._hits_at_pop[1]
         self._hits_at_pop = (self.scorer.cache_hits, self.scorer.cache_lookups)
         out = {"goal_buffer_size": float(self.goal_buffer.size), "memory_size": float(self.memory.size), "return_std": self.normalizer.std,
                "time_inference": self.time_inference - self._inference_at_pop}
         self._inference_at_pop = self.time_inference
+        out.update({k: self.stats[k] for k in QUALITY_KEYS if k in self.stats})  # the last predictor update's
         if lookups:
             out["cache_hit_rate"] = hits / lookups
         total, squares, count = self._reward_sums
@@ -456,13 +474,87 @@ class GoalCuriosityModule:
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict[str, Any]:
         """Everything the module learned and remembers, as tensors and plain Python values (loadable with
-        ``torch.load(..., weights_only=True)``). Scores in flight are taken first."""
-        return persistence.module_state(self)
+        ``torch.load(..., weights_only=True)``), each raw observation kept once (:func:`persistence.pack`), so that a
+        resumed run continues bit for bit (the memos included: recomputing a value in another batch can change its
+        last bits). Scores in flight are taken first."""
+        self.collect_all()
+        state = {
+            "vae": self.vae.state_dict(),
+            "vae_optimizer": self.trainer.vae_optimizer.state_dict(),
+            "predictor": self.predictor.state_dict(),
+            "predictor_optimizer": self.trainer.predictor_optimizer.state_dict(),
+            "goal_buffer": self.goal_buffer.state_dict(),
+            "memory": self.memory.state_dict(),
+            "trajectories": self.trajectories.state_dict(),
+            "normalizer": self.normalizer.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "torch_rng": self.trainer.generator.get_state(),
+            "envs": self.episodes.state_dict(),
+            "phi_cache": memo_to_state(self.scorer.phi_memo),
+            # the loss the VAE trains with goes with the VAE, so a resumed run keeps it (see load_state_dict)
+            "settings": {"vae_pixel_weighting": self.vae_pixel_weighting},
+            "counters": {"pretrained": self.pretrained, "n_recorded_steps": self.n_recorded_steps,
+                         "last_vae_update": self.last_vae_update, "last_predictor_update": self.last_predictor_update},
+        }
+        return persistence.pack(state, self.adapter.raw_shape)
 
     def load_state_dict(self, state: dict[str, Any], strict: bool = True) -> None:
-        """Restore a :meth:`state_dict`.
+        """Restore a :meth:`state_dict`; a ``ValueError`` for a state that is not one or holds non-finite weights.
 
         :param state: what :meth:`state_dict` returned
         :param strict: as for ``torch.nn.Module.load_state_dict`` (accepted for SB3's ``set_parameters``)
         """
-        persistence.load_module_state(self, state, strict)
+        missing = {"vae", "predictor", "goal_buffer", "memory", "normalizer", "counters"} - set(state)
+        if missing:
+            raise ValueError(f"curiosity state is missing {sorted(missing)}: not a GoalCuriosityModule state_dict")
+        state = persistence.unpack(state)
+        for net in ("vae", "predictor"):
+            bad = nonfinite_entries(state[net])
+            if bad:
+                raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
+        self.collect_all()
+        self.vae.load_state_dict(state["vae"], strict=strict)
+        self.scorer.phi_memo.clear()
+        self.predictor.load_state_dict(state["predictor"], strict=strict)
+        for name, optimizer in (("vae_optimizer", self.trainer.vae_optimizer), ("predictor_optimizer", self.trainer.predictor_optimizer)):
+            if name in state:
+                optimizer.load_state_dict(state[name])
+                for group in optimizer.param_groups:  # a state saved before foreach was on keeps the multi-tensor step
+                    group["foreach"] = True
+        self.vae.eval()
+        self._encoder = self._frozen_encoder()
+        self.predictor.eval()
+        self.goal_buffer.load_state_dict(state["goal_buffer"])
+        self.memory.load_state_dict(state["memory"])
+        self.normalizer.load_state_dict(state["normalizer"])
+        if "rng" in state:
+            self.rng.bit_generator.state = state["rng"]
+        if "torch_rng" in state:
+            self.trainer.generator.set_state(state["torch_rng"])
+        settings = state.get("settings", {})
+        if "vae_pixel_weighting" in settings:
+            self.vae_pixel_weighting = float(settings["vae_pixel_weighting"])
+        elif not self._pixel_weighting_given:
+            self.vae_pixel_weighting = 0.0  # saved before the weighting existed: the VAE trained without it
+        c = state["counters"]
+        self.pretrained = bool(c["pretrained"])
+        self.n_recorded_steps = int(c["n_recorded_steps"])
+        self.last_vae_update = int(c["last_vae_update"])
+        self.last_predictor_update = int(c["last_predictor_update"])
+        self._folded = self.predictor.fold()
+        envs = state.get("envs")
+        if envs is not None:
+            n = int(envs["episode_ids"].shape[0])
+            self.episodes, self.trajectories = self._new_env_stores()
+            self.scorer.episodes, self.scorer.pending = self.episodes, []
+            self.normalizer.returns = self.normalizer.returns[:0]
+            rng_state = self.rng.bit_generator.state
+            self.ensure_envs(n)  # allocates; the goals it draws are overwritten below
+            self.rng.bit_generator.state = rng_state
+            self.normalizer.load_state_dict(state["normalizer"])
+            self.episodes.load_state_dict(envs)
+            self.trajectories.load_state_dict(state["trajectories"])
+            self._refresh_active_goals()
+            self.episodes.load_memos(envs)
+        if "phi_cache" in state:
+            self.scorer.phi_memo.update(memo_from_state(state["phi_cache"]))

@@ -134,56 +134,70 @@ class TrajectoryStore:
         self.count = state["count"].numpy().copy()
         self.capacity = int(self.embeddings.shape[0])
 
-    def sample_pairs(
-        self, n_pairs: int, max_distance: int, rng: np.random.Generator, first_visit: bool = False
-    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        """Draw up to ``n_pairs`` pairs (s_t, s_{t+y}) from one episode, y uniform in [1, max_distance].
+    def _episode_runs(self, holdout: int, held_out: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every state that can start a pair, as (env, chronological index, steps left in its episode within the part).
 
+        The newest ``holdout`` states of each env form the held-out part: ``held_out=False`` keeps the states before
+        them (and their pairs' goals before them too), ``held_out=True`` the held-out states."""
+        envs, times, room = [], [], []
+        filled = np.minimum(self.count, self.capacity)
+        for e in range(self.n_envs):
+            n = int(filled[e])
+            if n == 0:
+                continue
+            ids = self.episode_ids[(self.count[e] - n + np.arange(n)) % self.capacity, e]
+            last = np.append(np.flatnonzero(ids[1:] != ids[:-1]), n - 1)  # chronological index of each run's last state
+            end = last[np.searchsorted(last, np.arange(n))]  # the last state of each state's episode
+            lo, hi = (max(0, n - holdout), n) if held_out else (0, max(0, n - holdout))
+            t = np.arange(lo, hi)
+            envs.append(np.full(len(t), e)), times.append(t), room.append(np.minimum(end[t], hi - 1) - t)
+        if not envs:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.concatenate(envs), np.concatenate(times), np.concatenate(room)
+
+    def sample_pairs(
+        self, n_pairs: int, max_distance: int | None, rng: np.random.Generator, first_visit: bool = False, min_distance: int = 1,
+        holdout: int = 0, held_out: bool = False,
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """Draw up to ``n_pairs`` pairs (s_t, s_{t+y}) from one episode: s_t uniform among the states with room for
+        a gap of ``min_distance``, y uniform in [min_distance, max_distance] within the episode.
+
+        :param max_distance: the largest gap (None: the rest of the episode)
         :param first_visit: give each pair the distance of the *first* visit of the goal after s_t,
             ``min {k in [0, y] : phi(s_{t+k}) == phi(s_{t+y})}``, instead of y: the steps the agent actually needed
             to reach g from s. When the agent stays put or comes back to a state, the plain step gap would label
             (s, s) as "not mastered" once y exceeds the threshold, contradicting the pairs of the same states at
             small y; with the first visit an identical state is at distance 0.
+        :param min_distance: the smallest gap (>= 1)
+        :param holdout: the newest ``holdout`` states of each env are held out: no pair drawn with ``held_out=False``
+            touches them
+        :param held_out: draw pairs whose s_t (and so g) is among the held-out states instead
         :return: phi(s), phi(g), distance (float), each with the same first dimension (possibly fewer than n_pairs)
         """
-        filled = np.minimum(self.count, self.capacity)
-        if self.capacity == 0 or filled.sum() < 2:
-            empty = th.zeros(0, self.embed_dim)
+        if max_distance is not None and max_distance < min_distance:
+            raise ValueError(f"max_distance must be >= min_distance={min_distance}, got {max_distance}")
+        empty = th.zeros(0, self.embed_dim)
+        if self.capacity == 0 or len(self) < 2:
             return empty, empty, th.zeros(0)
-        starts = self.count - filled  # chronological index 0 = absolute step count - filled
-        weights = filled / filled.sum()
-        chosen_e, chosen_t, chosen_y = [], [], []
-        got = 0
-        for _ in range(20):
-            m = 2 * (n_pairs - got) + 16
-            e = rng.choice(self.n_envs, size=m, p=weights)
-            c = (rng.random(m) * filled[e]).astype(np.int64)
-            y = rng.integers(1, max_distance + 1, size=m)
-            ok = c + y < filled[e]
-            e, c, y = e[ok], c[ok], y[ok]
-            s_slot = (starts[e] + c) % self.capacity
-            g_slot = (starts[e] + c + y) % self.capacity
-            ok = self.episode_ids[s_slot, e] == self.episode_ids[g_slot, e]
-            e, s_slot, g_slot, y = e[ok], s_slot[ok], g_slot[ok], y[ok]
-            take = min(len(e), n_pairs - got)
-            chosen_e.append(e[:take]), chosen_t.append(np.stack([s_slot[:take], g_slot[:take]])), chosen_y.append(y[:take])
-            got += take
-            if got >= n_pairs:
-                break
-        e = np.concatenate(chosen_e)
-        t = np.concatenate(chosen_t, axis=1)
-        y = np.concatenate(chosen_y)
+        env, t, room = self._episode_runs(holdout, held_out)
+        ok = room >= min_distance
+        env, t, room = env[ok], t[ok], room[ok]
+        if len(env) == 0:
+            return empty, empty, th.zeros(0)
+        pick = rng.integers(len(env), size=n_pairs)
+        env, t, room = env[pick], t[pick], room[pick]
+        top = room if max_distance is None else np.minimum(room, max_distance)
+        y = min_distance + (rng.random(n_pairs) * (top - min_distance + 1)).astype(np.int64)
+        start = self.count[env] - np.minimum(self.count[env], self.capacity)
+        s_slot, g_slot = (start + t) % self.capacity, (start + t + y) % self.capacity
+        e_t = th.from_numpy(env)
+        phi_s, phi_g = self.embeddings[th.from_numpy(s_slot), e_t], self.embeddings[th.from_numpy(g_slot), e_t]
         dist = th.from_numpy(y).float()
-        if len(e) == 0:
-            empty = th.zeros(0, self.embed_dim)
-            return empty, empty, dist
-        e_t = th.from_numpy(e)
-        phi_s, phi_g = self.embeddings[th.from_numpy(t[0]), e_t], self.embeddings[th.from_numpy(t[1]), e_t]
         if first_visit:
             # scan k = y-1 .. 0: the last match found is the earliest visit (states of one episode: same ids)
             for k in range(int(y.max()) - 1, -1, -1):
                 rows = np.nonzero(y > k)[0]
-                slot = th.from_numpy((t[0, rows] + k) % self.capacity)
+                slot = th.from_numpy((s_slot[rows] + k) % self.capacity)
                 same = (self.embeddings[slot, e_t[rows]] == phi_g[rows]).all(dim=1)
                 dist[th.from_numpy(rows)[same]] = float(k)
         return phi_s, phi_g, dist

@@ -21,6 +21,7 @@ import torch as th
 from sb3_gocu.curiosity.config import VAE_HOLDOUT, CuriosityConfig
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE, PixelWeights, mastery_loss, vae_loss
 from sb3_gocu.curiosity.observations import ObservationAdapter
+from sb3_gocu.curiosity.reachability import QualityPairs
 from sb3_gocu.curiosity.reward import complexity_score, mastered_probability
 from sb3_gocu.curiosity.stores import distinct_rows
 
@@ -113,6 +114,8 @@ class PredictorJob:
     weights: th.Tensor  #: multiplicity of each pair, mean 1
     drawn: int  #: pairs drawn before de-duplication
     threads: int | None = None  #: torch threads of the fit (None: the fitting thread's)
+    target: th.Tensor | None = None  #: each pair's label (None: eq 15-16's p_skill, computed when the fit starts)
+    quality: QualityPairs | None = None  #: held-out pairs that score the fit
 
 
 @dataclasses.dataclass
@@ -127,12 +130,13 @@ class PredictorFit:
     drawn: int  #: pairs drawn
     mastered: float  #: weighted fraction of pairs labelled mastered
     time: float
+    quality: dict[str, float] = dataclasses.field(default_factory=dict)  #: held-out AUCs after the fit
 
     def stats(self, seconds: float) -> dict[str, float]:
         """The figures logged for the update (``seconds``: its whole time)."""
         return {"predictor_loss": mean_or_nan(self.losses), "predictor_accuracy": mean_or_nan(self.accs), "mastered_fraction": self.mastered,
                 "predictor_pairs": float(self.drawn), "predictor_distinct_pairs": float(self.n), "predictor_skipped_updates": float(self.skipped),
-                "predictor_time": seconds}
+                "predictor_adam_steps": float(len(self.losses)), "predictor_time": seconds, **self.quality}
 
 
 def snapshot(network: th.nn.Module, optimizer: th.optim.Optimizer) -> Snapshot:
@@ -195,7 +199,7 @@ class Trainer:
     :param config: the module's settings
     :param adapter: raw observations -> network inputs
     :param device: torch device of the networks
-    :param generator: torch generator of the fits (minibatch order, VAE noise, Bernoulli labels)
+    :param generator: torch generator of the fits (minibatch order, VAE noise)
     """
 
     def __init__(self, vae: ConvVAE | MlpVAE, predictor: MasteryPredictor, config: CuriosityConfig, adapter: ObservationAdapter,
@@ -309,25 +313,31 @@ class Trainer:
         return bool(th.isfinite(phi).all()) and bool(th.equal(phi.amin(0), phi.amax(0)))
 
     # ------------------------------------------------------------------ predictor
-    def predictor_job(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor) -> PredictorJob | None:
+    def predictor_job(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor, target: th.Tensor | None = None,
+                      quality: QualityPairs | None = None) -> PredictorJob | None:
         """The job of a predictor update on drawn pairs: non-finite embeddings dropped, duplicates merged
-        (``predictor_dedupe``); None when fewer than two pairs are left."""
+        (``predictor_dedupe``); None when fewer than two pairs are left.
+
+        :param target: each pair's label (None: eq 15-16, at fit time)
+        :param quality: held-out pairs that score the fit"""
         keep = th.isfinite(phi_s).all(1) & th.isfinite(phi_g).all(1)  # a broken VAE's embeddings teach nothing
-        phi_s, phi_g, dist = phi_s[keep], phi_g[keep], dist[keep]
-        if len(phi_s) < 2:
+        columns = [phi_s[keep], phi_g[keep], dist[keep, None]] + ([] if target is None else [target[keep, None]])
+        if len(columns[0]) < 2:
             return None
-        drawn = len(phi_s)
+        drawn = len(columns[0])
         weights = th.ones(drawn)
         if self.config.predictor_dedupe:
-            rows = np.ascontiguousarray(th.cat([phi_s, phi_g, dist[:, None]], dim=1).numpy())
+            rows = np.ascontiguousarray(th.cat(columns, dim=1).numpy())
             _, first, counts = np.unique(rows.view(np.dtype((np.void, rows.itemsize * rows.shape[1]))).ravel(), return_index=True, return_counts=True)
             if len(first) < 2:
                 first, counts = np.arange(drawn), np.ones(drawn, dtype=np.int64)
             first = th.from_numpy(first)
-            phi_s, phi_g, dist = phi_s[first], phi_g[first], dist[first]
+            columns = [c[first] for c in columns]
             weights = th.from_numpy(counts * (len(counts) / counts.sum())).float()  # mean 1 over the distinct pairs
         d = self.device
-        return PredictorJob(phi_s.to(d), phi_g.to(d), dist.to(d), weights.to(d), drawn, th.get_num_threads())
+        phi_s, phi_g, dist = (c.to(d) for c in columns[:3])
+        return PredictorJob(phi_s, phi_g, dist[:, 0], weights.to(d), drawn, th.get_num_threads(),
+                            None if target is None else columns[3][:, 0].to(d), None if quality is None else quality.to(d))
 
     @th.no_grad()
     def label_pairs(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor) -> th.Tensor:
@@ -338,16 +348,18 @@ class Trainer:
         return mastered_probability(complexity_score(prior, dist, cfg.prior_weight, cfg.distance_weight), cfg.label_threshold, cfg.label_slope)
 
     def fit_predictor(self, job: PredictorJob, on_epoch: Callable[[int], None] | None = None) -> PredictorFit:
-        """Label the job's pairs (eq 15-16) and fit the predictor to them for ``predictor_epochs`` epochs.
+        """Fit the predictor to the job's labels (eq 15-16's when it has none) for ``predictor_epochs`` epochs, then
+        score it on the job's held-out pairs.
 
         :param on_epoch: called with the epoch number after each epoch (the predictor in train mode), for probes
         """
         cfg = self.config
         with torch_threads(job.threads):
             t0 = time.perf_counter()
-            p_skill = self.label_pairs(job.phi_s, job.phi_g, job.dist)
-            # labels drawn on the generator's device (the CPU), then moved to the predictor's
-            target = p_skill if cfg.soft_labels else th.bernoulli(p_skill.nan_to_num(0.5).cpu(), generator=self.generator).to(p_skill.device)
+            if job.target is not None:
+                p_skill = target = job.target
+            else:
+                p_skill = target = self.label_pairs(job.phi_s, job.phi_g, job.dist)  # soft targets
             saved = snapshot(self.predictor, self.predictor_optimizer)
             self.predictor.train()
             n = len(job.phi_s)
@@ -370,7 +382,8 @@ class Trainer:
                     on_epoch(epoch)
             self.predictor.eval()
             mastered = float((job.weights * (p_skill > 0.5).float()).sum() / job.weights.sum())
-            return PredictorFit(saved, losses, accs, skipped, n, job.drawn, mastered, time.perf_counter() - t0)
+            quality = {} if job.quality is None else job.quality.score(self.predictor.mastery)
+            return PredictorFit(saved, losses, accs, skipped, n, job.drawn, mastered, time.perf_counter() - t0, quality)
 
 
 def mean_or_nan(values: Sequence[float]) -> float:

@@ -7,6 +7,7 @@
 
 The variants (each a ``benchmarks/sample_efficiency.py`` command; everything not named is the defaults):
 
+* ``defaults``: PPO_GoCu as it ships (``summary`` reads them from ``<out>/defaults`` unless ``--defaults`` names a folder);
 * ``predictor_untrained``: the mastery predictor never trained (``predictor_epochs=0``): r_gc from its initial weights;
 * ``constant_curiosity``: r_gc replaced by its running mean (``--constant-curiosity``, a benchmark-only switch), so
   only the revisit rule, the normalisation and the second value head remain;
@@ -39,6 +40,7 @@ import sample_efficiency as se  # noqa: E402
 
 #: variant -> the sample_efficiency.py arguments that make it
 VARIANTS: dict[str, list[str]] = {
+    "defaults": ["--algos", "ppo_gocu"],
     "predictor_untrained": ["--algos", "ppo_gocu", "--curiosity-kwargs", json.dumps({"predictor_epochs": 0})],
     "constant_curiosity": ["--algos", "ppo_gocu", "--constant-curiosity"],
     "vae_untrained": ["--algos", "ppo_gocu", "--curiosity-kwargs", json.dumps({"vae_epochs": 0})],
@@ -86,7 +88,7 @@ def steps_to(rows: Sequence[dict[str, Any]], timesteps: int) -> int | None:
 def arms(out: pathlib.Path, defaults: pathlib.Path | None) -> dict[str, dict[int, list[dict[str, Any]]]]:
     """arm -> seed -> CSV rows, the defaults first, then the variants in :data:`VARIANTS` order."""
     found: dict[str, dict[int, list[dict[str, Any]]]] = {}
-    folders = ([("defaults", defaults)] if defaults else []) + [(v, out / v) for v in VARIANTS]
+    folders = [("defaults", defaults or out / "defaults")] + [(v, out / v) for v in VARIANTS if v != "defaults"]
     for name, folder in folders:
         # the defaults' folder may hold plain PPO's runs beside PPO_GoCu's; a variant's folder holds one algorithm's
         for path in sorted(folder.glob("ppo_gocu_seed*.csv" if name == "defaults" else "*_seed*.csv")):

@@ -618,7 +618,7 @@ def test_module_initial_weights_depend_on_its_seed_alone():
 def test_stores_stay_at_their_capacities(monkeypatch):
     monkeypatch.setattr(episodes, "EPISODE_MEMORY", 10)
     monkeypatch.setattr(scoring, "PHI_MEMO_SIZE", 50)
-    caps = dict(goal_buffer_size=6, n_goals=3, memory_size=20, predictor_train_freq=40, max_distance=3,
+    caps = dict(goal_buffer_size=6, n_goals=3, memory_size=20, predictor_train_freq=40, max_distance=6,
                 vae_train_freq=200, new_goals_per_episode=3, goal_novelty=0.0)
     module = GoalCuriosityModule(BOX, **{**SMALL_CURIOSITY, **caps}, seed=0)
     module.recording = True
@@ -633,7 +633,7 @@ def test_stores_stay_at_their_capacities(monkeypatch):
         if t % 64 == 63:
             module.maybe_train()
         assert module.goal_buffer.size <= 6 and module.memory.size <= 20
-        assert len(module.trajectories) <= module.trajectories.capacity * n_envs <= max(40, 2 * 3 * n_envs)
+        assert len(module.trajectories) <= module.trajectories.capacity * n_envs <= max(40, 2 * 6 * n_envs)
         assert all(len(c) <= 10 for c in module.episodes.rewards) and all(len(e) <= 10 for e in module.episodes.states)
         assert len(module.scorer.phi_memo) <= 50
         # the episodes ended since the last drain: per env, its steps since then and the episode memory before them

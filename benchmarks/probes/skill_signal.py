@@ -146,6 +146,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--seed", type=int, default=1000, help="env seeds and the draws of pairs and goals")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", default=None)
+    p.add_argument("--collect", type=int, default=0,
+                   help="train each model this many env steps more (16 envs) before probing: a checkpoint taken at a VAE "
+                        "update holds a predictor trained on the old embedding, until the next predictor update")
     args = p.parse_args(argv)
     th.set_num_threads(args.threads)
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
@@ -154,6 +157,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     results: dict[str, Any] = {}
     for path in args.models:
         model = PPO_GoCu.load(path, device="cpu")
+        if args.collect:
+            model.set_env(make_vec_env(args.env, n_envs=16, seed=args.seed + 1))
+            model.learn(args.collect, reset_num_timesteps=False)
         rng = np.random.default_rng(args.seed)
         episodes = play(model, args.env, args.episodes, args.seed)
         res = {

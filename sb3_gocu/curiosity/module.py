@@ -366,11 +366,11 @@ class GoalCuriosityModule:
         self.collect_all()  # the trajectory store takes a state's phi when its ticket is collected
         cfg, store = self.config, self.trajectories
         holdout = self.predictor_holdout()
+        n_pairs = cfg.predictor_pairs if cfg.predictor_epochs > 0 else 0  # an untrained predictor is only scored
         if cfg.pair_labels == "eq16":
-            pairs = (*store.sample_pairs(cfg.predictor_pairs, cfg.max_distance, self.rng, first_visit=cfg.first_visit_distance,
-                                         holdout=holdout), None)
+            pairs = (*store.sample_pairs(n_pairs, cfg.max_distance, self.rng, first_visit=cfg.first_visit_distance, holdout=holdout), None)
         else:
-            pairs = reachability_pairs(store, self.goal_buffer, cfg.predictor_pairs, NEAR_DISTANCE, cfg.max_distance, self.rng, holdout)
+            pairs = reachability_pairs(store, self.goal_buffer, n_pairs, NEAR_DISTANCE, cfg.max_distance, self.rng, holdout)
         quality = QualityPairs.draw(store, self.goal_buffer, cfg.max_distance, self.rng, holdout)
         self.last_predictor_update = self.n_recorded_steps
         return self.trainer.predictor_job(*pairs, quality=quality)

@@ -168,7 +168,7 @@ class TrajectoryStore:
             to reach g from s. When the agent stays put or comes back to a state, the plain step gap would label
             (s, s) as "not mastered" once y exceeds the threshold, contradicting the pairs of the same states at
             small y; with the first visit an identical state is at distance 0.
-        :param min_distance: the smallest gap (>= 1)
+        :param min_distance: the smallest gap (0: any state of the part can start a pair, its own goal at gap 0 included)
         :param holdout: the newest ``holdout`` states of each env are held out: no pair drawn with ``held_out=False``
             touches them
         :param held_out: draw pairs whose s_t (and so g) is among the held-out states instead
@@ -177,7 +177,7 @@ class TrajectoryStore:
         if max_distance is not None and max_distance < min_distance:
             raise ValueError(f"max_distance must be >= min_distance={min_distance}, got {max_distance}")
         empty = th.zeros(0, self.embed_dim)
-        if self.capacity == 0 or len(self) < 2:
+        if self.capacity == 0 or len(self) < 2 or n_pairs == 0:
             return empty, empty, th.zeros(0)
         env, t, room = self._episode_runs(holdout, held_out)
         ok = room >= min_distance

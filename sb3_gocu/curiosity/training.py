@@ -322,11 +322,11 @@ class Trainer:
         :param quality: held-out pairs that score the fit"""
         keep = th.isfinite(phi_s).all(1) & th.isfinite(phi_g).all(1)  # a broken VAE's embeddings teach nothing
         columns = [phi_s[keep], phi_g[keep], dist[keep, None]] + ([] if target is None else [target[keep, None]])
-        if len(columns[0]) < 2:
+        if len(columns[0]) < 2 and not (self.config.predictor_epochs == 0 and quality is not None):  # nothing to fit or score
             return None
         drawn = len(columns[0])
         weights = th.ones(drawn)
-        if self.config.predictor_dedupe:
+        if self.config.predictor_dedupe and drawn:
             rows = np.ascontiguousarray(th.cat(columns, dim=1).numpy())
             _, first, counts = np.unique(rows.view(np.dtype((np.void, rows.itemsize * rows.shape[1]))).ravel(), return_index=True, return_counts=True)
             if len(first) < 2:
@@ -381,7 +381,7 @@ class Trainer:
                 if on_epoch is not None:
                     on_epoch(epoch)
             self.predictor.eval()
-            mastered = float((job.weights * (p_skill > 0.5).float()).sum() / job.weights.sum())
+            mastered = float((job.weights * (p_skill > 0.5).float()).sum() / job.weights.sum()) if n else float("nan")
             quality = {} if job.quality is None else job.quality.score(self.predictor.mastery)
             return PredictorFit(saved, losses, accs, skipped, n, job.drawn, mastered, time.perf_counter() - t0, quality)
 

@@ -91,7 +91,9 @@ def steps_to(rows: Sequence[dict[str, Any]], timesteps: int) -> int | None:
 def arms(out: pathlib.Path, defaults: pathlib.Path | None) -> dict[str, dict[int, list[dict[str, Any]]]]:
     """arm -> seed -> CSV rows, the defaults first, then the variants in :data:`VARIANTS` order."""
     found: dict[str, dict[int, list[dict[str, Any]]]] = {}
-    folders = [("defaults", defaults or out / "defaults")] + [(v, out / v) for v in VARIANTS if v != "defaults"]
+    defaults = defaults or out / "defaults"
+    # a variant that is the defaults (``--defaults <out>/predictor_untrained``) is read once, as the defaults
+    folders = [("defaults", defaults)] + [(v, out / v) for v in VARIANTS if v != "defaults" and (out / v).resolve() != defaults.resolve()]
     for name, folder in folders:
         # the defaults' folder may hold plain PPO's runs beside PPO_GoCu's; a variant's folder holds one algorithm's
         for path in sorted(folder.glob("ppo_gocu_seed*.csv" if name == "defaults" else "*_seed*.csv")):

@@ -8,9 +8,8 @@
 The variants (each a ``benchmarks/sample_efficiency.py`` command; everything not named is the defaults):
 
 * ``defaults``: PPO_GoCu as it ships (``summary`` reads them from ``<out>/defaults`` unless ``--defaults`` names a folder);
-* ``predictor_trained``: the mastery predictor trained one epoch per update (``predictor_epochs=1``, on reachability pairs);
-* ``predictor_untrained``: the mastery predictor never trained (``predictor_epochs=0``, the defaults since the trained one
-  explored no better): r_gc from its initial weights;
+* ``predictor_trained``: the mastery predictor trained one epoch per update (``predictor_epochs=1``, the defaults);
+* ``predictor_untrained``: the mastery predictor never trained (``predictor_epochs=0``): r_gc from its initial weights;
 * ``constant_curiosity``: r_gc replaced by its running mean (``--constant-curiosity``, a benchmark-only switch), so
   only the revisit rule, the normalisation and the second value head remain;
 * ``vae_untrained``: the VAE never trained (``vae_epochs=0``): a fixed random encoder;

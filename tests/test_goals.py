@@ -191,7 +191,8 @@ def test_predictor_pairs_are_deduplicated_with_their_multiplicity_as_weight():
     from sb3_gocu.curiosity import GoalCuriosityModule
 
     space = spaces.Box(-10, 10, (1,), np.float32)
-    kwargs = dict(n_goals=1, goal_buffer_size=4, embed_dim=1, predictor_hidden=(8,), predictor_pairs=400, max_distance=3, pair_labels="eq16")
+    kwargs = dict(n_goals=1, goal_buffer_size=4, embed_dim=1, predictor_hidden=(8,), predictor_pairs=400, max_distance=3, pair_labels="eq16",
+                  predictor_epochs=1)
     mod = GoalCuriosityModule(space, seed=0, **kwargs)
     mod.trajectories.ensure_envs(1)
     for v in [0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 0.0, 0.0, 1.0, 2.0, 2.0, 2.0] * 3:  # one episode with many repeats

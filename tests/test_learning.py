@@ -30,7 +30,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_gocu import PPO_GoCu
 
-ENV, TARGET, WINDOW, BUDGET, SEED, N_ENVS = "GoCu/DoorKey-8x8-v0", 0.9, 100, 700_000, 6, 16
+ENV, TARGET, WINDOW, BUDGET, SEED, N_ENVS = "GoCu/DoorKey-8x8-v0", 0.9, 100, 700_000, 3, 16
 
 
 class StopAtMeanReturn(BaseCallback):

@@ -36,7 +36,7 @@ PAPER_CURIOSITY_KWARGS: Mapping[str, Any] = MappingProxyType(
         revisit_decay="none",  # every visit of a state pays eq 13 (default: only the first visit in an episode)
         pair_labels="eq16",  # pairs of one episode at gaps 1..d_max labelled by eq 15-16 (default: reachability pairs)
         first_visit_distance=False,  # dist(s, g) of eq 15 is the step gap y (default: steps to g's first visit)
-        predictor_epochs=15,  # 15 epochs per update (default 0: on DoorKey the trained predictor explores no better)
+        predictor_epochs=15,  # 15 epochs per update (default 1: on a bounded draw 15 epochs overfit it)
         predictor_dedupe=False,  # every drawn pair once (default: distinct pairs weighted by count)
         vae_patience=0,  # all vae_epochs epochs on the whole bank (default: early stopping with patience 1)
         vae_pixel_weighting=0.0,  # every pixel weighs 1 in eq 8 (default for images: rare colours weigh more)
@@ -70,7 +70,7 @@ class CuriosityConfig:
     predictor_hidden: Sequence[int] = (512, 512, 512, 512, 512)  #: hidden layer sizes of the predictor
     predictor_lr: float = 5e-4  #: Adam learning rate of the predictor
     predictor_batch_size: int = 128  #: minibatch size of predictor training
-    predictor_epochs: int = 0  #: epochs over the drawn pairs at each predictor update (0: never trained, only scored)
+    predictor_epochs: int = 1  #: epochs over the drawn pairs at each predictor update (0: never trained, only scored)
     predictor_pairs: int = 16384  #: training pairs drawn per predictor update
     predictor_train_freq: int = 20_000  #: P_m, recorded env steps between predictor updates
     predictor_dedupe: bool = True  #: train on the distinct drawn pairs, each weighted by its count

@@ -7,7 +7,6 @@
 
 The variants (each a ``benchmarks/sample_efficiency.py`` command; everything not named is the defaults):
 
-* ``defaults``: PPO_GoCu as it ships (``summary`` reads them from ``<out>/defaults`` unless ``--defaults`` names a folder);
 * ``predictor_trained``: the mastery predictor trained one epoch per update (``predictor_epochs=1``, the defaults);
 * ``predictor_untrained``: the mastery predictor never trained (``predictor_epochs=0``): r_gc from its initial weights;
 * ``constant_curiosity``: r_gc replaced by its running mean (``--constant-curiosity``, a benchmark-only switch), so
@@ -41,7 +40,6 @@ import sample_efficiency as se  # noqa: E402
 
 #: variant -> the sample_efficiency.py arguments that make it
 VARIANTS: dict[str, list[str]] = {
-    "defaults": ["--algos", "ppo_gocu"],
     "predictor_trained": ["--algos", "ppo_gocu", "--curiosity-kwargs", json.dumps({"predictor_epochs": 1})],
     "predictor_untrained": ["--algos", "ppo_gocu", "--curiosity-kwargs", json.dumps({"predictor_epochs": 0})],
     "constant_curiosity": ["--algos", "ppo_gocu", "--constant-curiosity"],
@@ -90,9 +88,9 @@ def steps_to(rows: Sequence[dict[str, Any]], timesteps: int) -> int | None:
 def arms(out: pathlib.Path, defaults: pathlib.Path | None) -> dict[str, dict[int, list[dict[str, Any]]]]:
     """arm -> seed -> CSV rows, the defaults first, then the variants in :data:`VARIANTS` order."""
     found: dict[str, dict[int, list[dict[str, Any]]]] = {}
-    defaults = defaults or out / "defaults"
-    # a variant that is the defaults (``--defaults <out>/predictor_untrained``) is read once, as the defaults
-    folders = [("defaults", defaults)] + [(v, out / v) for v in VARIANTS if v != "defaults" and (out / v).resolve() != defaults.resolve()]
+    # a variant folder given as the defaults (``--defaults <out>/predictor_trained``) is read once, as the defaults
+    folders = ([("defaults", defaults)] if defaults else []) + [
+        (v, out / v) for v in VARIANTS if defaults is None or (out / v).resolve() != defaults.resolve()]
     for name, folder in folders:
         # the defaults' folder may hold plain PPO's runs beside PPO_GoCu's; a variant's folder holds one algorithm's
         for path in sorted(folder.glob("ppo_gocu_seed*.csv" if name == "defaults" else "*_seed*.csv")):

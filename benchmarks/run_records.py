@@ -93,15 +93,19 @@ def list_checkpoints(ckpt_dir: pathlib.Path) -> list[tuple[int, pathlib.Path]]:
 
 
 # ---------------------------------------------------------------------------------------------- summary
-def machine_line(threads: int) -> str:
-    cpu = platform.processor() or ""
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; else what ``platform`` knows)."""
     try:
         for line in open("/proc/cpuinfo"):
             if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
+                return line.split(":", 1)[1].strip()
     except OSError:
         pass
+    return platform.processor() or ""
+
+
+def machine_line(threads: int) -> str:
+    cpu = cpu_model()
     return (
         f"{platform.machine()} {cpu}, {os.cpu_count()} CPUs, Python {platform.python_version()}, torch {th.__version__}, "
         f"torch threads {threads}"

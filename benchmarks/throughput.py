@@ -13,6 +13,12 @@ settings given here are merged into the YAML's), e.g.
 
     python benchmarks/throughput.py --env ALE/MontezumaRevenge-v5 --timesteps 20000
 
+The last line (``summary:``) is the figure the README quotes: PPO_GoCu's time per step over plain PPO's over the
+whole run, and past ``--past`` steps (default 100,000: after the pretraining and the first VAE update's wait). With
+``--gocu-model`` PPO_GoCu continues a trained agent (its goal buffer full, its policy moving: few states seen twice)::
+
+    python benchmarks/throughput.py --env GoCu/DoorKey-8x8-v0 --timesteps 40000 --past 0 --gocu-model <run>/model_600000.zip
+
 ``--order`` picks which agent runs first. glibc's allocator makes the first training run of a process slower
 (it keeps returning memory and faulting it in again until its dynamic thresholds have grown), so by default
 (``--malloc fixed``) the thresholds are fixed at the start and the order no longer matters.
@@ -24,7 +30,6 @@ import argparse
 import hashlib
 import json
 import os
-import platform
 import sys
 import time
 from typing import Any
@@ -32,6 +37,7 @@ from typing import Any
 import numpy as np
 import torch as th
 from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
@@ -40,6 +46,7 @@ from sb3_gocu.callbacks import GoCuCallback
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from malloc_thresholds import fix_malloc_thresholds  # noqa: E402
+from run_records import cpu_model, machine_line  # noqa: E402
 
 PPO_SETTINGS: dict[str, Any] = dict(PAPER_PPO_KWARGS)  # both algorithms get them explicitly
 
@@ -66,6 +73,21 @@ class Timer:
 #: the random-policy pretraining phase (env steps, VAE pretraining, first goals), over all runs
 pretrain_timer = Timer()
 pretrain_timer.wrap(GoCuCallback, "_pretrain", "pretrain")
+
+
+class RolloutClock(BaseCallback):
+    """Records (num_timesteps, wall time) at each rollout's start: the steps done and everything before them (PPO's
+    and the curiosity's updates included)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.marks: list[tuple[int, float]] = []
+
+    def _on_rollout_start(self) -> None:
+        self.marks.append((self.num_timesteps, time.perf_counter()))
+
+    def _on_step(self) -> bool:
+        return True
 
 
 def innermost(venv: Any) -> Any:
@@ -122,10 +144,12 @@ def raw_env_rate(env_id: str, n_envs: int, steps: int, seed: int, zoo: bool = Fa
 
 
 def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dict[str, Any], gocu_model: str | None = None,
-        overrides: dict[str, Any] | None = None, model_attrs: dict[str, Any] | None = None, zoo: bool = False) -> dict[str, float]:
+        overrides: dict[str, Any] | None = None, model_attrs: dict[str, Any] | None = None, zoo: bool = False,
+        past: int = 0) -> dict[str, float]:
     """One arm: ``algo`` for ``timesteps`` steps; ``overrides``: curiosity settings that replace those of
     ``curiosity_kwargs`` (a fresh agent; refused with ``gocu_model``, whose settings were fixed at its construction);
-    ``zoo``: the agent the zoo launcher builds from our YAML files."""
+    ``zoo``: the agent the zoo launcher builds from our YAML files; ``past``: also time the steps from the first
+    rollout that starts at or after this step to the end (``past_steps_per_s``)."""
     overrides = overrides or {}
     timer = Timer()
     if zoo:
@@ -158,10 +182,16 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         timer.wrap(model.curiosity, "maybe_train", "curiosity_updates")
     timer.wrap(model, "collect_rollouts", "rollout")
     pretrain_before = pretrain_timer.totals.get("pretrain", 0.0)
+    clock = RolloutClock()
     t0 = time.perf_counter()
-    model.learn(timesteps)
-    total = time.perf_counter() - t0
+    model.learn(timesteps, callback=clock)
+    t_end = time.perf_counter()
+    total = t_end - t0
     out = {"total_s": total, "steps": float(model.num_timesteps), "steps_per_s": model.num_timesteps / total, "n_envs": float(venv.num_envs)}
+    after = [(s, t) for s, t in clock.marks if s >= past]
+    if past > 0 and after and after[0][0] < model.num_timesteps:
+        out["past_from_step"] = float(after[0][0])
+        out["past_steps_per_s"] = (model.num_timesteps - after[0][0]) / (t_end - after[0][1])
     out.update({f"{k}_s": v for k, v in timer.totals.items()})
     if algo == "ppo_gocu":
         mod = model.curiosity
@@ -183,6 +213,16 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
     return out
 
 
+def summary_line(args: argparse.Namespace, ppo: dict[str, float], gocu: dict[str, float]) -> str:
+    """The figure the README quotes: PPO_GoCu's time per step over plain PPO's, over the whole run and past ``--past``."""
+    what = (f"PPO_GoCu a trained agent ({os.path.basename(args.gocu_model)}) continued, plain PPO from scratch" if args.gocu_model
+            else "from scratch, the pretraining and every update included")
+    line = f"summary: a PPO_GoCu step costs {ppo['steps_per_s'] / gocu['steps_per_s']:.2f}x plain PPO's time ({args.timesteps:,} steps, {what}"
+    if "past_steps_per_s" in ppo and "past_steps_per_s" in gocu:
+        line += f"; {ppo['past_steps_per_s'] / gocu['past_steps_per_s']:.2f}x past step {int(gocu['past_from_step']):,}"
+    return line + f"); {args.env}, {gocu['n_envs']:.0f} envs, {args.threads} torch thread(s), seed {args.seed}, CPU {cpu_model()}"
+
+
 def weights_hash(model: Any) -> str:
     """First 16 hex digits of the SHA-256 of the policy's weights (and the VAE's and the predictor's): arms that
     must train the same networks (options that change only the wall time) show the same digits."""
@@ -200,6 +240,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--timesteps", type=int, default=100_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (both agents; every recorded run gives it)")
+    parser.add_argument("--past", type=int, default=100_000,
+                        help="also give the time per step past this step (from the first rollout that starts there; 0: not)")
     parser.add_argument("--order", choices=["ppo-first", "gocu-first"], default="ppo-first")
     parser.add_argument("--zoo", action=argparse.BooleanOptionalAction, default=None,
                         help="build the agents from the zoo's YAML files (default: for ALE/... ids only)")
@@ -236,8 +278,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     command = [os.path.basename(sys.executable)] + (sys.argv if argv is None else [__file__, *argv])
     print(f"command: {' '.join(command)}")
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {th.__version__}, threads {args.threads}, seed {args.seed}; "
-          f"order {args.order}; malloc: {malloc}")
+    print(f"machine: {machine_line(args.threads)}; seed {args.seed}; order {args.order}; malloc: {malloc}")
     raw = raw_env_rate(args.env, 16, min(args.timesteps, 32_000), args.seed, zoo)
     results = {}
     labels_extra: dict[str, str] = {}
@@ -246,18 +287,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     order = ["ppo", "ppo_gocu"] if args.order == "ppo-first" else ["ppo_gocu", "ppo"]
     for algo in order:
         thunks.append((algo, lambda algo=algo: run(algo, args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
-                                                   model_attrs=base_model if algo == "ppo_gocu" else None, zoo=zoo)))
+                                                   model_attrs=base_model if algo == "ppo_gocu" else None, zoo=zoo,
+                                                   past=args.past)))
     for i, extra in enumerate(args.also_model_kwargs or []):
         thunks.append((f"ppo_gocu_model_{i}", lambda extra=extra: run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs,
-                                                                       args.gocu_model, model_attrs={**base_model, **json.loads(extra)}, zoo=zoo)))
+                                                                       args.gocu_model, model_attrs={**base_model, **json.loads(extra)}, zoo=zoo,
+                                                                       past=args.past)))
         labels_extra[f"ppo_gocu_model_{i}"] = extra
     for i, extra in enumerate(args.also_curiosity_kwargs or []):
         thunks.append((f"ppo_gocu_curiosity_{i}", lambda extra=extra: run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs,
-                                                                           args.gocu_model, overrides=json.loads(extra), model_attrs=base_model, zoo=zoo)))
+                                                                           args.gocu_model, overrides=json.loads(extra), model_attrs=base_model, zoo=zoo,
+                                                                           past=args.past)))
         labels_extra[f"ppo_gocu_curiosity_{i}"] = extra
     for i, (text, arm) in enumerate(zip(args.also_arm or [], arms)):
         thunks.append((f"ppo_gocu_arm_{i}", lambda arm=arm: run("ppo_gocu", args.env, args.timesteps, args.seed, curiosity_kwargs, args.gocu_model,
-                                                                 overrides=arm.get("curiosity"), model_attrs={**base_model, **arm.get("model", {})}, zoo=zoo)))
+                                                                 overrides=arm.get("curiosity"), model_attrs={**base_model, **arm.get("model", {})}, zoo=zoo,
+                                                                 past=args.past)))
         labels_extra[f"ppo_gocu_arm_{i}"] = text
     for name, thunk in (reversed(thunks) if args.reverse else thunks):
         results[name] = thunk()
@@ -268,6 +313,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(f"plain PPO                     {ppo['steps_per_s']:8.0f} steps/s")
     print(f"PPO_GoCu                      {gocu['steps_per_s']:8.0f} steps/s")
     print(f"time per step, GoCu / PPO     {ppo['steps_per_s'] / gocu['steps_per_s']:8.2f}x")
+    if "past_steps_per_s" in ppo and "past_steps_per_s" in gocu:
+        print(f"past step {int(gocu['past_from_step']):,}: plain PPO {ppo['past_steps_per_s']:.0f} steps/s, PPO_GoCu "
+              f"{gocu['past_steps_per_s']:.0f} steps/s, {ppo['past_steps_per_s'] / gocu['past_steps_per_s']:.2f}x")
     extras = list(labels_extra)
     labels = labels_extra
     for k in extras:
@@ -290,6 +338,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
           "updates' own time, pretraining's VAE epochs included)")
     print(f"  (pretrain_s is the whole random-policy pretraining phase (measured, not a remainder); "
           f"reward cache hit rate {gocu['cache_hit_rate']:.2f})")
+    print("\n" + summary_line(args, ppo, gocu))
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"command": command[1:], "order": args.order, "malloc": malloc, "raw_env_steps_per_s": raw, **results}, f, indent=2)

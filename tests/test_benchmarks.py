@@ -424,18 +424,19 @@ def test_embedding_phases_refit_leaves_the_model_as_it_was(ep, two_runs):
     assert r["refits"][0]["step"] != r["phi"]["step"]
 
 
-def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_time_options(tmp_path):
+def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_time_options(tmp_path, capsys):
     """benchmarks/throughput.py, tiny (DoorKey-5x5, 4,096 steps, tiny curiosity): a second arm with the defaults
     trains the same weights (whatever the timing of the scoring process and the update thread), an arm that changes
     the training (another ``predictor_lr``) does not, and each arm's time is split into its parts; ``--reverse``
-    runs the arms in the other order."""
+    runs the arms in the other order; ``--past 2048`` times the second rollout on, and the summary line gives both
+    ratios."""
     bench = load_script("throughput", "benchmarks/throughput.py")
     threads = th.get_num_threads()
     curiosity = TINY_IMAGE_CURIOSITY
     try:
         results = bench.main([
             "--env", "GoCu/DoorKey-5x5-v0", "--timesteps", "4096", "--threads", "1", "--malloc", "default",
-            "--curiosity-kwargs", json.dumps(curiosity), "--json", str(tmp_path / "t.json"),
+            "--curiosity-kwargs", json.dumps(curiosity), "--json", str(tmp_path / "t.json"), "--past", "2048",
             "--reverse", "--also-arm", json.dumps({}),
             "--also-arm", json.dumps({"curiosity": {"predictor_lr": 1e-2}}),
         ])
@@ -447,10 +448,15 @@ def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_ti
     assert len({ppo["weights_sha256"], gocu["weights_sha256"], other_lr["weights_sha256"]}) == 3
     for r in (ppo, gocu, again, other_lr):
         assert r["steps"] == 4096 and r["steps_per_s"] > 0 and r["env_s"] > 0 and r["ppo_update_s"] > 0
+        assert r["past_from_step"] == 2048 and r["past_steps_per_s"] > 0  # the second rollout of 16 x 128 steps on
     for r in (gocu, again, other_lr):
         assert r["pretrain_s"] > 0 and r["scoring_in_worker_s"] > 0 and r["predictor_training_s"] > 0
     saved = json.loads((tmp_path / "t.json").read_text())
     assert saved["ppo_gocu"]["weights_sha256"] == gocu["weights_sha256"] and saved["command"][1:3] == ["--env", "GoCu/DoorKey-5x5-v0"]
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    ratio, past_ratio = ppo["steps_per_s"] / gocu["steps_per_s"], ppo["past_steps_per_s"] / gocu["past_steps_per_s"]
+    assert last.startswith(f"summary: a PPO_GoCu step costs {ratio:.2f}x plain PPO's time (4,096 steps, from scratch")
+    assert f"; {past_ratio:.2f}x past step 2,048)" in last
 
 
 

@@ -15,6 +15,9 @@ Variants: ``eq16``, the pairs and labels an update used before (gap 1..d_max, fi
 labels with the predictor as prior); ``gap``, hard labels with positives <= k steps, negatives >= d_max in the same
 episode, nothing between; ``gap+goals``, the same plus negatives against frames of other episodes (the goal buffer's
 distribution); each with pixel-identical pairs dropped where the name ends in ``-distinct``.
+
+``--vae-update-epochs E`` adds one warm VAE update of at most E epochs after the pretraining, on a memory bank of all
+the later frames (what a budget on the VAE's updates costs the predictor).
 """
 
 from __future__ import annotations
@@ -87,6 +90,9 @@ def main() -> None:
     p.add_argument("--variants", nargs="+", default=["eq16", "gap", "gap+goals", "gap+goals-distinct"])
     p.add_argument("--near", type=int, default=5, help="k: positives are at most k steps apart")
     p.add_argument("--hidden", type=int, nargs="+", default=None, help="the predictor's hidden layers (default: the module's)")
+    p.add_argument("--vae-update-epochs", type=int, default=None,
+                   help="after the pretraining, one warm VAE update of at most this many epochs (early stopping as the module's) "
+                   "on a memory bank of every later frame, as a run's first update sees it (default: none)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
@@ -102,6 +108,11 @@ def main() -> None:
     frames = np.concatenate(episodes)[: cfg.pretrain_steps]
     module.memory.add(frames, module.rng)
     module.pretrain()
+    if args.vae_update_epochs is not None:
+        module.memory.add(np.concatenate(episodes)[cfg.pretrain_steps :], module.rng)
+        fit = module.train_vae(epochs=args.vae_update_epochs)
+        print(f"VAE update: at most {args.vae_update_epochs} epochs: {fit['vae_epochs_run']:.0f} run, best {fit['vae_best_epoch']:.0f}, "
+              f"{fit['vae_observations']:.0f} distinct observations, {fit['vae_time']:.1f} s")
     phi = [module.embed(ep) for ep in episodes]
     keys = [[observation_key(x) for x in ep] for ep in episodes]
     print(f"{len(episodes)} episodes, {sum(map(len, episodes))} frames, collected and VAE pretrained in {time.perf_counter() - t0:.0f} s")

@@ -158,6 +158,34 @@ def test_trajectory_store_capacity_does_not_depend_on_how_envs_are_added():
     assert one_by_one.episode_ids[0].tolist() == [0, 1, 2, 3, -1] and len(one_by_one) == 4
 
 
+def test_first_visit_distance_matches_a_scan_on_wrapped_rings_of_several_envs_and_episodes():
+    """The first-visit distance (a binary search over each env's states sorted by embedding) equals a plain scan of
+    s_t .. s_{t+y} for every pair, on rings that have wrapped, with episodes of several envs repeating a few states,
+    and -0.0 equal to 0.0."""
+    rng = np.random.default_rng(3)
+    store = TrajectoryStore(total_capacity=90, embed_dim=2, min_per_env=30)
+    store.ensure_envs(3)
+    episode = np.zeros(3, dtype=np.int64)
+    for _ in range(75):  # 75 states per env in rings of 30
+        episode += rng.random(3) < 0.1
+        phi = th.from_numpy(rng.integers(0, 4, size=(3, 2)).astype(np.float32))
+        phi[phi == 0] = -0.0 if rng.random() < 0.5 else 0.0
+        store.add(phi, episode.copy(), np.arange(3))
+    s, g, d = store.sample_pairs(3000, None, np.random.default_rng(0), first_visit=True)
+    env, t, room = store._episode_runs(0, False)
+    pick_rng = np.random.default_rng(0)  # the same draws as sample_pairs makes
+    ok = room >= 1
+    env, t, room = env[ok], t[ok], room[ok]
+    pick = pick_rng.integers(len(env), size=3000)
+    env, t, room = env[pick], t[pick], room[pick]
+    y = 1 + (pick_rng.random(3000) * room).astype(np.int64)
+    for e, ti, yi, di in zip(env, t, y, d.tolist()):
+        ring = store.embeddings[(store.count[e] - 30 + np.arange(30)) % 30, e]
+        expected = next(k for k in range(yi + 1) if th.equal(ring[ti + k] + 0.0, ring[ti + yi] + 0.0))
+        assert di == expected
+    assert (d < th.from_numpy(y).float()).float().mean() > 0.15  # revisits are common here (19%): the check has teeth
+
+
 def test_first_visit_distance_is_the_earliest_visit_of_the_goal():
     """Trajectory (one env, one episode) 0 1 1 1 2 1 3: a pair (s, g) gets the steps until g is first seen after s."""
     traj = [0.0, 1.0, 1.0, 1.0, 2.0, 1.0, 3.0]

@@ -109,7 +109,8 @@ class TrajectoryStore:
     def add(self, embeddings: th.Tensor, episode_ids: np.ndarray, env_indices: np.ndarray) -> None:
         """Write one state per env of ``env_indices``."""
         pos = self.count[env_indices] % self.capacity
-        self.embeddings[pos, env_indices] = embeddings
+        # through numpy views (the same memory): torch's indexed assignment costs ~0.8 ms a step here, numpy's ~10 us
+        self.embeddings.numpy()[pos, env_indices] = embeddings.numpy()
         self.episode_ids[pos, env_indices] = episode_ids
         self.count[env_indices] += 1
 
@@ -194,10 +195,24 @@ class TrajectoryStore:
         phi_s, phi_g = self.embeddings[th.from_numpy(s_slot), e_t], self.embeddings[th.from_numpy(g_slot), e_t]
         dist = th.from_numpy(y).float()
         if first_visit:
-            # scan k = y-1 .. 0: the last match found is the earliest visit (states of one episode: same ids)
-            for k in range(int(y.max()) - 1, -1, -1):
-                rows = np.nonzero(y > k)[0]
-                slot = th.from_numpy((s_slot[rows] + k) % self.capacity)
-                same = (self.embeddings[slot, e_t[rows]] == phi_g[rows]).all(dim=1)
-                dist[th.from_numpy(rows)[same]] = float(k)
+            dist = th.from_numpy(self._first_visits(env, t, y)).float()
         return phi_s, phi_g, dist
+
+    def _first_visits(self, env: np.ndarray, t: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """For pairs (chronological index t, gap y) of one episode each: the smallest k in [0, y] whose state
+        s_{t+k} has the embedding of s_{t+y} (equal values), by a binary search among each env's states sorted by
+        (embedding, time)."""
+        k = y.copy()
+        filled = np.minimum(self.count, self.capacity)
+        for e in np.unique(env):
+            n = int(filled[e])
+            rows = np.flatnonzero(env == e)
+            phi = self.embeddings[(self.count[e] - n + np.arange(n)) % self.capacity, e].numpy() + np.float32(0.0)  # -0.0 -> 0.0
+            _, ids = np.unique(np.ascontiguousarray(phi).view(np.dtype((np.void, phi.itemsize * phi.shape[1]))).ravel(), return_inverse=True)
+            ids = ids.ravel().astype(np.int64)
+            code = ids * n + np.arange(n)  # sorted by code: by embedding, then by time
+            order = np.sort(code)
+            g = t[rows] + y[rows]
+            first = order[np.searchsorted(order, ids[g] * n + t[rows])] % n  # the earliest index >= t with g's embedding
+            k[rows] = first - t[rows]
+        return k

@@ -11,7 +11,7 @@ The variants (each a ``benchmarks/sample_efficiency.py`` command; everything not
 * ``predictor_untrained``: the mastery predictor never trained (``predictor_epochs=0``): r_gc from its initial weights;
 * ``constant_curiosity``: r_gc replaced by its running mean (``--constant-curiosity``, a benchmark-only switch), so
   only the revisit rule, the normalisation and the second value head remain;
-* ``vae_untrained``: the VAE never trained (``vae_epochs=0``): a fixed random encoder;
+* ``vae_untrained``: the VAE never trained (``vae_epochs=0, vae_update_epochs=0``): a fixed random encoder;
 * ``revisit_none``: every visit pays r_gc (``revisit_decay="none"``, the paper's rule);
 * ``one_value_head``: plain PPO (one value head) on ``GoCuVecEnvWrapper(mode="sum")`` with ``GoCuCallback``.
 
@@ -43,7 +43,7 @@ VARIANTS: dict[str, list[str]] = {
     "predictor_trained": ["--algos", "ppo_gocu", "--curiosity-kwargs", json.dumps({"predictor_epochs": 1})],
     "predictor_untrained": ["--algos", "ppo_gocu", "--curiosity-kwargs", json.dumps({"predictor_epochs": 0})],
     "constant_curiosity": ["--algos", "ppo_gocu", "--constant-curiosity"],
-    "vae_untrained": ["--algos", "ppo_gocu", "--curiosity-kwargs", json.dumps({"vae_epochs": 0})],
+    "vae_untrained": ["--algos", "ppo_gocu", "--curiosity-kwargs", json.dumps({"vae_epochs": 0, "vae_update_epochs": 0})],
     "revisit_none": ["--algos", "ppo_gocu", "--curiosity-kwargs", json.dumps({"revisit_decay": "none"})],
     "one_value_head": ["--algos", "ppo_sum"],
 }

@@ -69,13 +69,12 @@ class RSSSampler(BaseCallback):
         self.print_every = print_every
         self.t0 = time.perf_counter()
         self._next_print = 0
-        self._timers_at_print = (0.0,) * 5  # the curiosity timers at the last printed sample
+        self._timers_at_print = (0.0,) * 3  # the curiosity timers at the last printed sample
 
     def _timers(self) -> tuple[float, ...]:
-        """Cumulative seconds: the rollout's own time in the module (waiting included), waiting for the scoring
-        worker, scoring in the worker (overlapping), VAE training, predictor training."""
+        """Cumulative seconds: the rollout's own time in the module, VAE training, predictor training."""
         m = self.model.curiosity
-        return m.time_inference, m.scorer.time_waiting, m.scorer.time_in_worker, m.time_vae, m.time_predictor
+        return m.time_inference, m.time_vae, m.time_predictor
 
     def _on_step(self) -> bool:
         return True
@@ -91,8 +90,8 @@ class RSSSampler(BaseCallback):
             print(
                 f"{self.num_timesteps:>9d} steps {seconds:8.0f} s  RSS {r / MB:8.1f} MB  "
                 f"goals {m.goal_buffer.size}  memory {m.memory.size}  trajectories {len(m.trajectories)}  "
-                f"phi cache {len(m.scorer.phi_memo)}  |  since the last line: curiosity {d[0]:.0f} s (waiting {d[1]:.0f}), "
-                f"worker {d[2]:.0f} s, VAE {d[3]:.0f} s, predictor {d[4]:.0f} s",
+                f"phi cache {len(m.scorer.phi_memo)}  |  since the last line: curiosity {d[0]:.0f} s, "
+                f"VAE {d[1]:.0f} s, predictor {d[2]:.0f} s",
                 flush=True,
             )
             self._next_print += self.print_every

@@ -196,7 +196,6 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
     if algo == "ppo_gocu":
         mod = model.curiosity
         out["curiosity_inference_s"] = mod.time_inference
-        out["scoring_in_worker_s"] = mod.scorer.time_in_worker
         out["vae_training_s"] = mod.time_vae
         out["predictor_training_s"] = mod.time_predictor
         out["cache_hit_rate"] = mod.scorer.cache_hits / max(1, mod.scorer.cache_lookups)
@@ -204,7 +203,6 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         # learn), not in maybe_train
         # the end of learn waits for an update still running (outside any rollout): reported on its own row
         out["pretrain_s"] = pretrain_timer.totals.get("pretrain", 0.0) - pretrain_before
-        out["waiting_for_worker_s"] = mod.scorer.time_waiting
     out["policy_and_bookkeeping_s"] = (
         out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0) - out.get("curiosity_updates_s", 0.0)
     )
@@ -260,7 +258,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         "(another run each time the option is given)")
     parser.add_argument("--also-curiosity-kwargs", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with these GoalCuriosityModule keywords on top of --curiosity-kwargs, "
-                        "e.g. '{\"scoring_process\": true}' (another run each time the option is given)")
+                        "e.g. '{\"vae_update_epochs\": 20}' (another run each time the option is given)")
     parser.add_argument("--also-arm", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with both kinds of setting, e.g. '{\"curiosity\": {\"scoring_dtype\": \"bfloat16\"}, "
                         "\"model\": {\"n_epochs\": 2}}' (another run each time the option is given)")
@@ -324,15 +322,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.gocu_model:
         print(f"(PPO_GoCu continued {args.gocu_model})")
     print("\nwhere the time goes (s)          PPO   PPO_GoCu" + "".join(f"  {labels[k]:>20s}" for k in extras))
-    for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "waiting_for_worker_s",
-                "scoring_in_worker_s", "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s",
+    for key in ("env_s", "policy_and_bookkeeping_s", "ppo_update_s", "curiosity_inference_s", "curiosity_updates_s", "vae_training_s", "predictor_training_s", "pretrain_s",
                 "other_s", "total_s"):
         extra = "".join(f"  {results[k].get(key, 0.0):20.1f}" for k in extras)
         print(f"  {key:28s} {ppo.get(key, 0.0):7.1f}  {gocu.get(key, 0.0):9.1f}{extra}")
     print(f"  {'weights_sha256':28s} {ppo['weights_sha256']:>7s}  {gocu['weights_sha256']:>9s}" + "".join(f"  {results[k]['weights_sha256']:>20s}" for k in extras))
-    print("  (curiosity_inference_s: the rollout's own time in the module, waiting_for_worker_s included: the part it waited")
-    print("   for the worker's scores; scoring_in_worker_s: the embedding and scoring in the worker thread, overlapping the next")
-    print("   env steps, not on the critical path unless waited for)")
+    print("  (curiosity_inference_s: the rollout's time in the module: hashing, memos, embedding and scoring the new states)")
     print("  (other_s: the rest of learn, outside the rollouts, PPO's updates and pretraining)")
     print("  (curiosity_updates_s: the VAE/predictor updates at the rollouts' ends; vae/predictor_training_s: the "
           "updates' own time, pretraining's VAE epochs included)")

@@ -123,7 +123,6 @@ class GoCuCallback(BaseCallback):
             self.model._last_obs = env.reset()  # type: ignore[assignment]
         self.model._last_episode_starts = np.ones((env.num_envs,), dtype=bool)
         self.module.add_finished_episode_goals()
-        self.module.collect_all()
         self.module.sample_goals(np.arange(self.module.n_envs))
         self.pretrain_time = time.perf_counter() - t0
         self.model.start_time += int(self.pretrain_time * 1e9)  # time/fps counts the training steps' time alone

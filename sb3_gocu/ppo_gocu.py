@@ -25,7 +25,6 @@ import pathlib
 import pickle
 import warnings
 import zipfile
-from collections import deque
 from types import MappingProxyType
 from typing import Any, ClassVar, Iterable, Mapping, TypeVar
 
@@ -68,10 +67,7 @@ class PPO_GoCu(PPO):
     ``batch_size``, ``n_epochs``, ``gamma``, ``gae_lambda``, ``clip_range``, ``ent_coef``, ``vf_coef``, ...); those
     of :data:`PAPER_PPO_KWARGS` default to the paper's values (n_steps 128, batch 256, 4 epochs, lr 1e-4, ent 0.01,
     gamma 0.99, vf 0.5, clip 0.2) instead of SB3's, the others to SB3's. The paper runs 16 envs
-    (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. During
-    a rollout, the module embeds and scores each step's new states in its worker thread while the envs take the
-    next step (the same rewards, bit for bit, as scoring in the training thread); a step's ``infos["gocu_*"]``
-    entries are written when the next step has been taken (the last one's at the rollout's end). Plus:
+    (:data:`PAPER_N_ENVS`): pass ``make_vec_env(env_id, n_envs=16)``; an env id alone gives SB3's single env. Plus:
 
     :param policy: "MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a two-headed policy class
     :param env: an env id, an env, or a VecEnv; without a GoCu wrapper it is wrapped in a
@@ -295,74 +291,53 @@ class PPO_GoCu(PPO):
         if self.use_sde:
             self.policy.reset_noise(env.num_envs)
         callback.on_rollout_start()
-        gocu = self._deferring_wrapper(env)
-        waiting: deque[tuple[tuple, int | None]] = deque()  # steps whose r_gc is still being scored: (deferred, buffer row)
-        if gocu is not None:
-            gocu.defer = True
-        try:
-            while n_steps < n_rollout_steps:
-                if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
-                    self.policy.reset_noise(env.num_envs)
-                with th.no_grad():
-                    obs_tensor = obs_as_tensor(self._last_obs, self.device)  # type: ignore[arg-type]
-                    actions, values, log_probs = self.policy(obs_tensor)  # values: (n_envs, 2)
-                actions = actions.cpu().numpy()
-                clipped_actions = actions
-                if isinstance(self.action_space, spaces.Box):
-                    if self.policy.squash_output:
-                        clipped_actions = self.policy.unscale_action(clipped_actions)
-                    else:
-                        clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
-
-                # with a deferring wrapper, r_gc of this step is scored in the worker thread while the envs take the
-                # next step; it is added to its buffer row then (the row holds 0 or the truncation bootstrap until then)
-                new_obs, rewards, dones, infos = env.step(clipped_actions)
-                if gocu is not None:
-                    waiting.append((gocu.deferred, None))
-                    gocu.deferred = None
-                    while len(waiting) > 1:  # the step before this one: scored while the envs took this one
-                        self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
-                    intrinsic = np.zeros(env.num_envs, dtype=np.float32)
+        while n_steps < n_rollout_steps:
+            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+                self.policy.reset_noise(env.num_envs)
+            with th.no_grad():
+                obs_tensor = obs_as_tensor(self._last_obs, self.device)  # type: ignore[arg-type]
+                actions, values, log_probs = self.policy(obs_tensor)  # values: (n_envs, 2)
+            actions = actions.cpu().numpy()
+            clipped_actions = actions
+            if isinstance(self.action_space, spaces.Box):
+                if self.policy.squash_output:
+                    clipped_actions = self.policy.unscale_action(clipped_actions)
                 else:
-                    intrinsic = np.array([info["gocu_reward"] for info in infos], dtype=np.float32)
-                self.num_timesteps += env.num_envs
+                    clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
 
-                callback.update_locals(locals())
-                if not callback.on_step():
-                    return False
-                self._update_info_buffer(infos, dones)
-                n_steps += 1
-                if isinstance(self.action_space, spaces.Discrete):
-                    actions = actions.reshape(-1, 1)
+            new_obs, rewards, dones, infos = env.step(clipped_actions)
+            intrinsic = np.array([info["gocu_reward"] for info in infos], dtype=np.float32)
+            self.num_timesteps += env.num_envs
 
-                # time-limit truncation: bootstrap each stream with its own head and discount
-                for idx, done in enumerate(dones):
-                    if done and infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False):
-                        terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
-                        with th.no_grad():
-                            terminal_value = self.policy.predict_values(terminal_obs)[0]  # type: ignore[arg-type]
-                        rewards[idx] += self.gamma * terminal_value[0].item()
-                        if self.intrinsic_episodic:
-                            intrinsic[idx] += rollout_buffer.intrinsic_gamma * terminal_value[1].item()
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+            self._update_info_buffer(infos, dones)
+            n_steps += 1
+            if isinstance(self.action_space, spaces.Discrete):
+                actions = actions.reshape(-1, 1)
 
-                rollout_buffer.add(
-                    self._last_obs,  # type: ignore[arg-type]
-                    actions,
-                    rewards,
-                    self._last_episode_starts,  # type: ignore[arg-type]
-                    values,
-                    log_probs,
-                    intrinsic_reward=intrinsic,
-                )
-                if gocu is not None:
-                    waiting[-1] = (waiting[-1][0], rollout_buffer.pos - 1)
-                self._last_obs = new_obs  # type: ignore[assignment]
-                self._last_episode_starts = dones
-        finally:
-            if gocu is not None:
-                while waiting:
-                    self._take_intrinsic(gocu, rollout_buffer, *waiting.popleft())
-                gocu.defer = False
+            # time-limit truncation: bootstrap each stream with its own head and discount
+            for idx, done in enumerate(dones):
+                if done and infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False):
+                    terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
+                    with th.no_grad():
+                        terminal_value = self.policy.predict_values(terminal_obs)[0]  # type: ignore[arg-type]
+                    rewards[idx] += self.gamma * terminal_value[0].item()
+                    if self.intrinsic_episodic:
+                        intrinsic[idx] += rollout_buffer.intrinsic_gamma * terminal_value[1].item()
+
+            rollout_buffer.add(
+                self._last_obs,  # type: ignore[arg-type]
+                actions,
+                rewards,
+                self._last_episode_starts,  # type: ignore[arg-type]
+                values,
+                log_probs,
+                intrinsic_reward=intrinsic,
+            )
+            self._last_obs = new_obs  # type: ignore[assignment]
+            self._last_episode_starts = dones
 
         with th.no_grad():
             values = self.policy.predict_values(obs_as_tensor(new_obs, self.device))  # type: ignore[arg-type]
@@ -370,21 +345,6 @@ class PPO_GoCu(PPO):
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
-
-    def _deferring_wrapper(self, env: VecEnv) -> GoCuVecEnvWrapper | None:
-        """The env's GoCu wrapper if its scoring can overlap the next env steps: one
-        :class:`GoCuVecEnvWrapper` in ``"separate"`` mode holding this model's module, and no per-env wrappers."""
-        wrappers = find_gocu_wrappers(env)
-        if len(wrappers) == 1 and isinstance(wrappers[0], GoCuVecEnvWrapper) and wrappers[0].mode == "separate" and wrappers[0].module is self.curiosity:
-            return wrappers[0]
-        return None
-
-    @staticmethod
-    def _take_intrinsic(gocu: GoCuVecEnvWrapper, rollout_buffer: GoCuRolloutBuffer | GoCuDictRolloutBuffer, deferred: tuple, row: int | None) -> None:
-        """Collect a deferred step's r_gc into its ``infos`` and, once stored, into its buffer row."""
-        normalized = gocu.take_deferred(deferred)
-        if row is not None:
-            rollout_buffer.intrinsic_rewards[row] += normalized
 
     def learn(
         self: SelfPPOGoCu,
@@ -395,9 +355,9 @@ class PPO_GoCu(PPO):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfPPOGoCu:
-        """SB3's ``learn``, with one torch thread on a CPU device: the scoring worker runs beside the training thread,
-        and more threads oversubscribed the cores (docs/results.md, "Threads"). The caller's thread count is restored
-        when it returns."""
+        """SB3's ``learn``, with one torch thread on a CPU device: more threads were no faster on these small networks
+        and oversubscribed the cores of runs side by side (docs/results.md, "Threads"). The caller's thread count is
+        restored when it returns."""
         if self._acting_only:
             raise ValueError("this model was loaded with curiosity=False, to act: load it with curiosity=True to train it")
         with torch_threads(1 if self.device.type == "cpu" else None):

@@ -112,10 +112,6 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         VecEnvWrapper.__init__(self, venv)
         self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs)
         self.module.ensure_envs(self.num_envs)
-        #: set by PPO_GoCu during its rollouts (``mode="separate"`` only): step_wait hands the scoring to the
-        #: module's worker thread and leaves (ticket, infos, extrinsic rewards) in ``deferred``
-        self.defer = False
-        self.deferred: tuple[Any, list[dict], np.ndarray] | None = None
 
     def reset(self) -> Any:
         obs = self.venv.reset()
@@ -139,23 +135,9 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
                     reached = obs.copy()
                     for i in done_idx:
                         reached[i] = infos[i]["terminal_observation"]
-        if self.defer:
-            # the scoring runs in the module's worker thread; the caller takes it with take_deferred()
-            ticket = self.module.submit(reached, dones)
-            self.deferred = (ticket, infos, np.asarray(rewards, dtype=np.float32).copy())
-            return obs, rewards, dones, infos
         raw, normalized = self.module.step(reached, dones)
         rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i], i) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
-
-    def take_deferred(self, deferred: tuple[Any, list[dict], np.ndarray]) -> np.ndarray:
-        """Rewards of a step taken with ``defer=True`` (``mode="separate"``): collects its scores, writes the
-        ``gocu_*`` entries into that step's ``infos`` (the same dicts) and returns the normalised r_gc."""
-        ticket, infos, extrinsic = deferred
-        raw, normalized = self.module.collect(ticket)
-        for i, info in enumerate(infos):
-            self._report(info, extrinsic[i], raw[i], normalized[i], i)
-        return normalized
 
 
 class GoCuWrapper(_RewardReport, gym.Wrapper):

@@ -426,7 +426,7 @@ def test_embedding_phases_refit_leaves_the_model_as_it_was(ep, two_runs):
 
 def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_time_options(tmp_path, capsys):
     """benchmarks/throughput.py, tiny (DoorKey-5x5, 4,096 steps, tiny curiosity): a second arm with the defaults
-    trains the same weights (whatever the timing of the scoring process and the update thread), an arm that changes
+    trains the same weights, an arm that changes
     the training (another ``predictor_lr``) does not, and each arm's time is split into its parts; ``--reverse``
     runs the arms in the other order; ``--past 2048`` times the second rollout on, and the summary line gives both
     ratios."""
@@ -450,7 +450,7 @@ def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_ti
         assert r["steps"] == 4096 and r["steps_per_s"] > 0 and r["env_s"] > 0 and r["ppo_update_s"] > 0
         assert r["past_from_step"] == 2048 and r["past_steps_per_s"] > 0  # the second rollout of 16 x 128 steps on
     for r in (gocu, again, other_lr):
-        assert r["pretrain_s"] > 0 and r["scoring_in_worker_s"] > 0 and r["predictor_training_s"] > 0
+        assert r["pretrain_s"] > 0 and r["curiosity_inference_s"] > 0 and r["predictor_training_s"] > 0
     saved = json.loads((tmp_path / "t.json").read_text())
     assert saved["ppo_gocu"]["weights_sha256"] == gocu["weights_sha256"] and saved["command"][1:3] == ["--env", "GoCu/DoorKey-5x5-v0"]
     last = capsys.readouterr().out.strip().splitlines()[-1]

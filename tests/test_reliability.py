@@ -333,7 +333,7 @@ def test_an_update_that_makes_weights_nonfinite_is_rolled_back(name):
 def scripted_vae_update(losses, patience=1, epochs=6):
     """A VAE update whose held-out losses are ``losses`` (before the update, then after each epoch); returns the
     module, its statistics, the weights before the update and after each epoch."""
-    module = recorded_module(vae_patience=patience, vae_epochs=epochs)
+    module = recorded_module(vae_patience=patience, vae_update_epochs=epochs)
     script = iter(losses)
     module.trainer.vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
     states = [copy.deepcopy(module.vae.state_dict())]
@@ -382,7 +382,7 @@ def test_vae_holdout_split_and_patience_zero():
     assert not train & val and train | val == distinct
     assert len(val) == round(VAE_HOLDOUT * len(distinct)) > 0
     assert np.isclose(job.weights.sum() + job.val_weights.sum(), len(distinct), rtol=1e-5)
-    module = recorded_module(vae_patience=0, vae_epochs=3)
+    module = recorded_module(vae_patience=0, vae_update_epochs=3)
     job = module.vae_job()
     assert job.val_data is None and len(job.data) == len(distinct)
     fit = module.trainer.fit_vae(job)
@@ -722,90 +722,6 @@ def test_a_loaded_module_gives_the_same_rewards_bit_for_bit(tmp_path, decay):
         r2, n2 = loaded.step(batch, dones)
         assert np.array_equal(r1, r2) and np.array_equal(n1, n2), t
     assert not differences(module.state_dict(), loaded.state_dict())
-
-
-@pytest.mark.parametrize("lag", [1, 3])
-def test_scoring_in_the_worker_gives_the_same_rewards_and_state_bit_for_bit(lag):
-    """submit()/collect() with the scoring in the worker thread, taken ``lag`` steps later, against step(): the
-    same rewards, and the same module state once everything is collected (memo, counts, normaliser, stores)."""
-    space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
-    sync = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0, revisit_decay="inverse_sqrt")
-    deferred = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0, revisit_decay="inverse_sqrt")
-    rng = np.random.default_rng(0)
-    frames = rng.integers(0, 256, (20, 16, 16, 3), dtype=np.uint8)
-    # frames 10-19 are new after the first goals: their phi is embedded in the worker, where a later ticket reads it
-    steps = [(frames[rng.integers(10 if t < 20 else 20, size=3)], rng.random(3) < 0.1) for t in range(60)]
-    for m in (sync, deferred):
-        m.recording = True
-    for t, (batch, dones) in enumerate(steps[:20]):  # first goals
-        sync.step(batch, dones), deferred.step(batch, dones)
-    for m in (sync, deferred):
-        m.add_finished_episode_goals()
-        m.begin_episodes(np.arange(3))
-    expected = [sync.step(batch, dones) for batch, dones in steps[20:]]
-    tickets, got = [], []
-    for batch, dones in steps[20:]:
-        tickets.append(deferred.submit(batch, dones))
-        if len(tickets) > lag:
-            got.append(deferred.collect(tickets[len(got)]))
-    got += [deferred.collect(t) for t in tickets[len(got):]]
-    assert any(len(t.pending) for t in tickets), "no state was seen again while its score was in flight"
-    assert any(t.future is not None for t in tickets), "nothing was scored in the worker"
-    assert any(len(t.phi_from) for t in tickets), "no phi was taken from a ticket still embedding it"
-    assert all(isinstance(v, th.Tensor) for v in deferred.scorer.phi_memo.values())  # all embeddings landed in the memo
-    for (r1, n1), (r2, n2) in zip(expected, got):
-        assert np.array_equal(r1, r2) and np.array_equal(n1, n2)
-    assert deferred.collect(tickets[0]) is got[0]  # taking a ticket twice gives the same arrays
-    assert not differences(sync.state_dict(), deferred.state_dict())
-
-
-def test_state_dict_takes_the_scores_in_flight_first():
-    space = spaces.Box(0, 255, (16, 16, 3), np.uint8)
-    module = GoalCuriosityModule(space, **SMALL_CURIOSITY, seed=0)
-    module.recording = True
-    frames = np.random.default_rng(1).integers(0, 256, (4, 2, 16, 16, 3), dtype=np.uint8)
-    tickets = [module.submit(f, np.zeros(2, bool)) for f in frames]
-    module.state_dict()
-    assert all(t.result is not None for t in tickets) and not module.scorer.outstanding
-    assert module.pop_reward_stats()["reward_mean"] == pytest.approx(float(np.mean([t.result[0] for t in tickets])))
-
-
-@pytest.mark.parametrize("episodic", [False, True])
-def test_ppo_gocu_scoring_in_the_worker_matches_the_synchronous_run(episodic):
-    """r_gc scored in the worker thread while the envs take the next steps, against every step scored in the
-    training thread: the same buffer rewards, policy and module, bit for bit; infos carry the same gocu_* entries
-    once the rollout ends."""
-    runs, seen = [], []
-
-    class Infos(BaseCallback):
-        def _on_step(self):
-            self.steps = getattr(self, "steps", []) + [self.locals["infos"]]
-            return True
-
-    for in_worker in (True, False):
-        th.manual_seed(0)
-        curiosity = dict(predictor_train_freq=128)
-        model = small_model(curiosity=curiosity, intrinsic_episodic=episodic)
-        if not in_worker:
-            dispatch = model.curiosity.scorer.dispatch
-            model.curiosity.scorer.dispatch = lambda ticket, background, dispatch=dispatch: dispatch(ticket, False)
-        model.env.envs[0].unwrapped.max_steps = 7  # truncations: the episodic stream bootstraps its head
-        in_flight = []  # tickets outstanding at each collection
-        collect = model.curiosity.collect
-        model.curiosity.collect = lambda ticket, collect=collect, m=model: in_flight.append(len(m.curiosity.scorer.outstanding)) or collect(ticket)
-        cb = Infos()
-        model.learn(256, callback=cb)
-        assert (model.curiosity.scorer.worker is not None) == in_worker
-        # the step just submitted and the one before it are in flight at each collection
-        assert max(in_flight) == 2
-        runs.append(model)
-        seen.append([[info["gocu_reward"] for info in infos] for infos in cb.steps])
-    a, b = runs
-    assert np.array_equal(a.rollout_buffer.intrinsic_rewards, b.rollout_buffer.intrinsic_rewards)
-    assert a.rollout_buffer.intrinsic_rewards.any()
-    assert not differences(parameters(a), parameters(b))
-    assert not differences(a.curiosity.state_dict(), b.curiosity.state_dict())
-    assert seen[0] == seen[1]
 
 
 def test_an_update_that_embeds_every_observation_to_one_point_is_rolled_back():

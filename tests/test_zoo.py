@@ -55,7 +55,7 @@ ENV_IDS = (
     "ALE/Pitfall-v5",
 )
 TINY_CURIOSITY = (
-    "dict(pretrain_steps=128, predictor_train_freq=256, vae_epochs=1, predictor_pairs=256, predictor_epochs=1, "
+    "dict(pretrain_steps=128, predictor_train_freq=256, vae_epochs=1, vae_update_epochs=1, predictor_pairs=256, predictor_epochs=1, "
     "predictor_hidden=(64, 64))"
 )
 TINY = ["--num-threads", "1", "--eval-freq", "-1", "--hyperparams", "n_envs:2", "n_steps:64", "batch_size:64"]

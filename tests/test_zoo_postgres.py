@@ -30,7 +30,7 @@ from sb3_gocu.zoo import GOCU_TRIAL_PARAMS
 # as in test_zoo.py (the journal-file version of this test)
 DOORKEY = "GoCu/DoorKey-5x5-v0"
 TINY_CURIOSITY = (
-    "dict(pretrain_steps=128, predictor_train_freq=256, vae_epochs=1, predictor_pairs=256, predictor_epochs=1, "
+    "dict(pretrain_steps=128, predictor_train_freq=256, vae_epochs=1, vae_update_epochs=1, predictor_pairs=256, predictor_epochs=1, "
     "predictor_hidden=(64, 64))"
 )
 N_TRIALS = 2  # per worker

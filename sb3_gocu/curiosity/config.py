@@ -38,7 +38,8 @@ PAPER_CURIOSITY_KWARGS: Mapping[str, Any] = MappingProxyType(
         first_visit_distance=False,  # dist(s, g) of eq 15 is the step gap y (default: steps to g's first visit)
         predictor_epochs=15,  # 15 epochs per update (default 1: on a bounded draw 15 epochs overfit it)
         predictor_dedupe=False,  # every drawn pair once (default: distinct pairs weighted by count)
-        vae_patience=0,  # all vae_epochs epochs on the whole bank (default: early stopping with patience 1)
+        vae_patience=0,  # every epoch of an update on the whole bank (default: early stopping with patience 1)
+        vae_update_epochs=20,  # 20 epochs per VAE update, as the pretraining (default: at most 3 from the VAE's weights)
         vae_pixel_weighting=0.0,  # every pixel weighs 1 in eq 8 (default for images: rare colours weigh more)
         vae_dedupe=False,  # the VAE trains on the bank as it is (default: distinct observations weighted by count)
         predictor_hidden=(512, 512, 512, 512, 512),  # five hidden layers of 512 (default: two of 256, the same held-out AUCs)
@@ -81,7 +82,8 @@ class CuriosityConfig:
     vae_pixel_weighting: float | None = None  #: rare-colour weight exponent in [0, 1]; None: 0.5 for images, 0 else
     vae_lr: float = 1e-3  #: Adam learning rate of the VAE
     vae_batch_size: int = 128  #: minibatch size of VAE training
-    vae_epochs: int = 20  #: epochs over the memory bank at each VAE update (the most, with vae_patience)
+    vae_epochs: int = 20  #: epochs over the memory bank of the VAE's pretraining (all of them)
+    vae_update_epochs: int = 3  #: the most epochs over the memory bank of each later VAE update (fewer with vae_patience)
     vae_train_freq: int = 100_000  #: P_vae, recorded env steps between VAE updates
     vae_dedupe: bool = True  #: train the VAE on the bank's distinct observations, each weighted by its count
     vae_patience: int = 1  #: stop a VAE update after this many epochs without a better held-out loss (0: never)
@@ -93,7 +95,7 @@ class CuriosityConfig:
     def __post_init__(self) -> None:
         ints = ("n_goals", "goal_buffer_size", "new_goals_per_episode", "max_distance", "predictor_batch_size", "predictor_epochs",
                 "predictor_pairs", "predictor_train_freq", "embed_dim", "latent_dim", "vae_batch_size", "vae_epochs",
-                "vae_train_freq", "pretrain_steps", "memory_size", "vae_patience")
+                "vae_train_freq", "pretrain_steps", "memory_size", "vae_patience", "vae_update_epochs")
         for name in ints:
             check(is_integer(getattr(self, name)), f"{name} must be an integer, got {getattr(self, name)!r}")
         numbers = ("goal_novelty", "alpha", "reward_scale", "intrinsic_gamma", "prior_weight", "distance_weight", "label_threshold",
@@ -125,7 +127,7 @@ class CuriosityConfig:
         for name in ("predictor_batch_size", "predictor_pairs", "predictor_train_freq", "embed_dim", "latent_dim", "vae_batch_size",
                      "vae_train_freq", "memory_size"):
             check(getattr(self, name) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("predictor_epochs", "vae_epochs", "pretrain_steps", "vae_patience"):
+        for name in ("predictor_epochs", "vae_epochs", "vae_update_epochs", "pretrain_steps", "vae_patience"):
             check(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("predictor_lr", "vae_lr"):
             check(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")

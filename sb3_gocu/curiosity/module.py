@@ -12,8 +12,7 @@ The reward of a state s in an episode with goals g_1..g_K (eq 13, 14)::
     r_gc = (alpha - h(m_1, ..., m_K)) / delta   h = max (paper) or mean
     r    = r_gc / std(intrinsic returns)
 
-Beside the caller runs at most one worker that scores the states submitted for background scoring; it reads only what
-each submission copied (frozen copies of the networks among them). No Stable-Baselines3 import.
+No Stable-Baselines3 import.
 """
 
 from __future__ import annotations
@@ -38,7 +37,7 @@ from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reachability import PREDICTOR_HOLDOUT, QUALITY_KEYS, QualityPairs, reachability_pairs
 from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, revisit_factor
-from sb3_gocu.curiosity.scoring import Scorer, ScoringTicket, eq13_rows
+from sb3_gocu.curiosity.scoring import Scorer, eq13_rows
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, observation_key
 from sb3_gocu.curiosity.training import (
     PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update, nonfinite_entries,
@@ -179,7 +178,6 @@ class GoalCuriosityModule:
         new = self.episodes.grow(n_envs)
         if len(new) == 0:
             return
-        self.scorer.grow(n_envs)
         self.trajectories.ensure_envs(n_envs)
         self.normalizer.ensure_envs(n_envs)
         self.sample_goals(new)
@@ -198,7 +196,6 @@ class GoalCuriosityModule:
         self.ensure_envs(int(env_indices.max()) + 1)
         for e in env_indices:
             self.episodes.restart(e, self.recording)
-            self.scorer.pending[e].clear()
         self.sample_goals(env_indices)
 
     @th.inference_mode()
@@ -230,7 +227,6 @@ class GoalCuriosityModule:
         """Take the VAE's and the predictor's current weights into use for scoring (after changing them by hand):
         a new frozen encoder and folded predictor, the goals re-embedded, the memos and the stored training pairs
         (embedded by the old encoder) dropped."""
-        self.collect_all()
         self._use_encoder()
         self._folded = self.predictor.fold()
         self._refresh_active_goals()
@@ -254,74 +250,33 @@ class GoalCuriosityModule:
         :return: raw r_gc (eq 13, times the revisit factor of ``revisit_decay``) and normalised r_gc (eq 14),
             float32 arrays of shape (n,)
         """
-        return self.collect(self.submit(observations, dones, env_indices, background=False))
-
-    def submit(self, observations: Any, dones: np.ndarray, env_indices: np.ndarray | None = None, background: bool = True) -> ScoringTicket:
-        """First half of :meth:`step`: everything but the embedding and scoring of the states new to their episode,
-        which run in the worker thread when ``background`` while the caller goes
-        on (e.g. steps the envs again). Take the rewards with :meth:`collect`, in submission order; the values are
-        the same either way.
-
-        :param observations: as for :meth:`step`
-        :param dones: as for :meth:`step`
-        :param env_indices: as for :meth:`step`
-        :param background: score in the worker thread
-        """
         t0 = time.perf_counter()
         raw = self.adapter.extract(observations)
         env_indices = np.arange(len(raw)) if env_indices is None else np.asarray(env_indices, dtype=np.int64)
         dones = np.asarray(dones, dtype=bool)
         self.ensure_envs(int(env_indices.max()) + 1)
         keys = [observation_key(x) for x in raw]
-        ticket = self.scorer.lookup(raw, env_indices, keys, self._encoder, self._folded)
-        ticket.recording = self.recording
-        if self.config.revisit_decay != "none":
-            ticket.factor = revisit_factor(self.episodes.count_visits(keys, env_indices), self.config.revisit_decay)
+        rewards, phi = self.scorer.score(raw, env_indices, keys, self._encoder, self._folded)
         if self.recording:
+            self.trajectories.add(th.from_numpy(phi), self.episodes.ids[env_indices], env_indices)
             self.memory.add(raw, self.rng)
             for j, e in enumerate(env_indices):
                 self.episodes.states[e].append(raw[j].copy())
             self.n_recorded_steps += len(raw)
-        self.scorer.dispatch(ticket, background)
-        self.time_inference += time.perf_counter() - t0
-        self.begin_episodes(env_indices[dones])
-        return ticket
-
-    def collect(self, ticket: ScoringTicket) -> tuple[np.ndarray, np.ndarray]:
-        """Second half of :meth:`step`: the raw and normalised rewards of a ticket from :meth:`submit`. Tickets are
-        taken in submission order (taking one takes the earlier ones first); taking one twice returns the same arrays.
-
-        :param ticket: what :meth:`submit` returned"""
-        if ticket.result is not None:
-            return ticket.result
-        if ticket not in self.scorer.outstanding:
-            raise ValueError("this scoring ticket does not belong to this module")
-        while self.scorer.outstanding[0] is not ticket:
-            self.collect(self.scorer.outstanding[0])
-        t0 = time.perf_counter()
-        self.scorer.take(ticket)
-        if ticket.recording:  # phi of every row is known now
-            self.trajectories.add(th.from_numpy(ticket.phi), ticket.episode_ids, ticket.env_indices)
-        rewards = ticket.rewards
         if not np.all(np.isfinite(rewards)):
             # a broken network must not poison the policy's buffer: no bonus for these states
             self.stats["nonfinite_rewards"] = self.stats.get("nonfinite_rewards", 0) + int((~np.isfinite(rewards)).sum())
             rewards = np.where(np.isfinite(rewards), rewards, 0.0).astype(np.float32)
-        if ticket.factor is not None:
-            rewards = rewards * ticket.factor
-        normalized = self.normalizer(rewards, ticket.env_indices, update=ticket.recording)
-        if ticket.recording:
+        if self.config.revisit_decay != "none":
+            rewards = rewards * revisit_factor(self.episodes.count_visits(keys, env_indices), self.config.revisit_decay)
+        normalized = self.normalizer(rewards, env_indices, update=self.recording)
+        if self.recording:
             self._reward_sums[0] += float(rewards.sum())
             self._reward_sums[1] += float((rewards.astype(np.float64) ** 2).sum())
             self._reward_sums[2] += len(rewards)
-        ticket.result = (rewards, normalized)
         self.time_inference += time.perf_counter() - t0
-        return ticket.result
-
-    def collect_all(self) -> None:
-        """Take every outstanding ticket (before the networks, the goals or the state change hands)."""
-        while self.scorer.outstanding:
-            self.collect(self.scorer.outstanding[0])
+        self.begin_episodes(env_indices[dones])
+        return rewards, normalized
 
     # ------------------------------------------------------------------ learning
     def add_finished_episode_goals(self) -> int:
@@ -345,7 +300,7 @@ class GoalCuriosityModule:
     def vae_job(self, epochs: int | None = None, patience: int | None = None) -> VaeJob | None:
         """The job of a VAE update on the memory bank now (:meth:`Trainer.vae_job`); marks the update done.
 
-        :param epochs: default ``vae_epochs``
+        :param epochs: default ``vae_update_epochs``
         :param patience: default ``vae_patience``"""
         job = self.trainer.vae_job(self.memory.observations[: self.memory.size], self.rng, self.vae_pixel_weighting, epochs, patience)
         if job is not None:
@@ -363,7 +318,6 @@ class GoalCuriosityModule:
     def predictor_job(self) -> PredictorJob | None:
         """The job of a predictor update on pairs drawn from the trajectory store now (``pair_labels``), with held-out
         pairs of the newest states to score it; marks the update done."""
-        self.collect_all()  # the trajectory store takes a state's phi when its ticket is collected
         cfg, store = self.config, self.trajectories
         holdout = self.predictor_holdout()
         n_pairs = cfg.predictor_pairs if cfg.predictor_epochs > 0 else 0  # an untrained predictor is only scored
@@ -377,7 +331,6 @@ class GoalCuriosityModule:
 
     def _take_vae(self, fit: VaeFit) -> dict[str, float]:
         """Take a VAE fit into use: re-embed the goals, drop the embeddings of the old encoder."""
-        self.collect_all()
         t0 = time.perf_counter()
         guard_update("vae", self.vae, self.trainer.vae_optimizer, fit.snapshot, fit.skipped, self.stats)
         self.stats["vae_collapsed_updates"] = self.stats.get("vae_collapsed_updates", 0.0) + fit.collapsed
@@ -392,7 +345,6 @@ class GoalCuriosityModule:
 
     def _take_predictor(self, fit: PredictorFit) -> dict[str, float]:
         """Take a predictor fit into use: fold it for inference, recompute the goal halves."""
-        self.collect_all()  # scores in flight belong to the old predictor
         t0 = time.perf_counter()
         guard_update("predictor", self.predictor, self.trainer.predictor_optimizer, fit.snapshot, fit.skipped, self.stats)
         self._folded = self.predictor.fold()
@@ -413,7 +365,7 @@ class GoalCuriosityModule:
     def train_vae(self, epochs: int | None = None, patience: int | None = None) -> dict[str, float]:
         """Train the VAE on the memory bank (eq 8) now, then re-embed goals and drop stale embeddings.
 
-        :param epochs: passes over the memory bank (default ``vae_epochs``)
+        :param epochs: the most passes over the memory bank (default ``vae_update_epochs``)
         :param patience: early stopping's patience (default ``vae_patience``; 0: all ``epochs``)
         :return: statistics of the update
         """
@@ -431,7 +383,7 @@ class GoalCuriosityModule:
     def pretrain(self) -> dict[str, float]:
         """Train the VAE on what the memory bank holds (the random-policy observations) for all ``vae_epochs``
         epochs, and mark the module pretrained."""
-        out = self.train_vae(patience=0)
+        out = self.train_vae(epochs=self.config.vae_epochs, patience=0)
         self.pretrained = True
         self.last_predictor_update = self.n_recorded_steps  # P_m counts from the first rollout
         return out
@@ -476,8 +428,7 @@ class GoalCuriosityModule:
         """Everything the module learned and remembers, as tensors and plain Python values (loadable with
         ``torch.load(..., weights_only=True)``), each raw observation kept once (:func:`persistence.pack`), so that a
         resumed run continues bit for bit (the memos included: recomputing a value in another batch can change its
-        last bits). Scores in flight are taken first."""
-        self.collect_all()
+        last bits)."""
         state = {
             "vae": self.vae.state_dict(),
             "vae_optimizer": self.trainer.vae_optimizer.state_dict(),
@@ -512,7 +463,6 @@ class GoalCuriosityModule:
             bad = nonfinite_entries(state[net])
             if bad:
                 raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
-        self.collect_all()
         self.vae.load_state_dict(state["vae"], strict=strict)
         self.scorer.phi_memo.clear()
         self.predictor.load_state_dict(state["predictor"], strict=strict)
@@ -546,7 +496,7 @@ class GoalCuriosityModule:
         if envs is not None:
             n = int(envs["episode_ids"].shape[0])
             self.episodes, self.trajectories = self._new_env_stores()
-            self.scorer.episodes, self.scorer.pending = self.episodes, []
+            self.scorer.episodes = self.episodes
             self.normalizer.returns = self.normalizer.returns[:0]
             rng_state = self.rng.bit_generator.state
             self.ensure_envs(n)  # allocates; the goals it draws are overwritten below

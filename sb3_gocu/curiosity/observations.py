@@ -154,8 +154,7 @@ class ObservationAdapter:
     def to_tensor(self, raw: np.ndarray | th.Tensor, device: th.device | str = "cpu") -> th.Tensor:
         """A raw batch (as returned by :meth:`extract`) as a float tensor (n, C, H, W) or (n, D)."""
         if self.is_image and isinstance(raw, np.ndarray) and th.device(device).type == "cpu":
-            # the same values to the bit, in numpy: the scoring worker calls this, and every torch call there
-            # gives up the GIL and waits to get it back from the env stepping
+            # the same values to the bit as the torch path below, in numpy: one copy instead of torch's several
             y = raw[:, None] if self.layout == "hw" else raw.transpose(0, 3, 1, 2) if self.layout == "hwc" else raw
             y = np.ascontiguousarray(y, dtype=np.float32)
             if self.scale != 1.0:

@@ -216,11 +216,11 @@ class Trainer:
 
         :param rng: draws the held-out part
         :param pixel_weighting: exponent of the rare-colour weighting (0: none)
-        :param epochs: default ``vae_epochs``
+        :param epochs: default ``vae_update_epochs``
         :param patience: default ``vae_patience``
         """
         cfg = self.config
-        epochs = cfg.vae_epochs if epochs is None else epochs
+        epochs = cfg.vae_update_epochs if epochs is None else epochs
         patience = cfg.vae_patience if patience is None else patience
         data = observations.copy()
         if len(data) == 0 or epochs == 0:

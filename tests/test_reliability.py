@@ -131,6 +131,8 @@ BOX = ChainEnv().observation_space
         (dict(memory_size=0), r"memory_size must be >= 1"),
         (dict(predictor_hidden=(32, 0)), r"predictor_hidden must be a non-empty sequence of integers >= 1"),
         (dict(predictor_train_freq=0), r"predictor_train_freq must be >= 1"),
+        (dict(vae_update_epochs=-1), r"vae_update_epochs must be >= 0, got -1"),
+        (dict(vae_update_epochs=2.0), r"vae_update_epochs must be an integer, got 2.0"),
         (dict(alpha=float("inf")), r"alpha must be a finite number"),
         (dict(revisit_decay="half"), r"revisit_decay must be one of \('none', 'inverse_sqrt', 'first_visit'\), got 'half'"),
         # types: a bool is not an integer, a string not a number, a number not a flag
@@ -390,8 +392,8 @@ def test_vae_holdout_split_and_patience_zero():
 
 
 def test_pretraining_runs_every_epoch():
-    """The pretraining runs every epoch on the whole bank (no held-out loss measured), and the updates after it stop
-    early with vae_patience."""
+    """The pretraining runs every one of its ``vae_epochs`` on the whole bank (no held-out loss measured), and the
+    updates after it stop early with vae_patience, after at most ``vae_update_epochs``."""
     module = recorded_module(vae_patience=1, vae_epochs=4)
     script = iter([10.0, 11.0, 12.0])
     module.trainer.vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
@@ -401,6 +403,12 @@ def test_pretraining_runs_every_epoch():
     script = iter([10.0, 11.0, 12.0])
     out = module.train_vae()
     assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (1, 0), "the later update: patience 1"
+    module = recorded_module(vae_patience=1, vae_epochs=4, vae_update_epochs=2)
+    script = iter([10.0, 9.0, 8.0, 7.0])
+    module.pretrain()
+    module.trainer.vae_val_loss = lambda data, weights, pixel_weights=None: next(script)
+    out = module.train_vae()
+    assert (out["vae_epochs_run"], out["vae_best_epoch"]) == (2, 2), "still improving: stopped by vae_update_epochs"
 
 
 @pytest.mark.parametrize("kwargs, message", [

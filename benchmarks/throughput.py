@@ -1,10 +1,10 @@
 """Throughput of PPO_GoCu against plain PPO, measured in one run, and where PPO_GoCu's time goes.
 
-    python benchmarks/throughput.py --env GoCu/DoorKey-8x8-v0 --timesteps 100000 --threads 1
+    python benchmarks/throughput.py --env GoCu/DoorKey-8x8-v0 --timesteps 400000 --threads 1
 
 Prints, for the same env, step count and PPO settings (the paper's: 16 envs, n_steps 128, batch 256, 4 epochs):
-raw env steps/s with random actions (the ceiling), plain PPO steps/s, PPO_GoCu steps/s (paper settings:
-K = 50, 5x512 predictor, P_m = 20k, P_vae = 100k, VAE pretraining on 10k random-policy observations, all
+raw env steps/s with random actions (the ceiling), plain PPO steps/s, PPO_GoCu steps/s (the library's defaults:
+K = 50, P_m = 20k, P_vae = 100k, the VAE's pretraining on 10k random-policy observations and every update
 included), their ratio, and PPO_GoCu's time split into env stepping, policy forward and rollout
 bookkeeping, PPO update, curiosity inference, VAE training (pretraining included) and predictor training.
 With ``--zoo`` (the default for ``ALE/...`` ids) both agents are built as the zoo launcher builds them, from

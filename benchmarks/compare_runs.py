@@ -4,8 +4,7 @@
         <dir>/ppo_gocu_seed0.csv
 
 A rerun of a recorded seed with the same settings should give the same rows exactly (the seed alone decides a
-run; the curiosity's worker thread or process and the updates overlapping PPO's give the same values bit for
-bit): this checks it over the rows both files hold, as printed to the CSV's precision. Exit status 1 if a row
+run): this checks it over the rows both files hold, as printed to the CSV's precision. Exit status 1 if a row
 differs.
 """
 

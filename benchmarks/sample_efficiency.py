@@ -195,7 +195,7 @@ class SampleEfficiencyCallback(BaseCallback):
             ep = info.get("episode")
             if ep is not None:  # Monitor's end of a whole episode (a whole game on Atari)
                 self.run.add_episode(float(ep["r"]), info.get("task_phase"), info.get("distance"), info.get("is_success"))
-        self._infos.append(infos)  # PPO_GoCu fills a step's gocu_* entries one step later (scoring in a worker thread)
+        self._infos.append(infos)  # read at the rollout's end
         return True
 
     def _on_rollout_end(self) -> None:

@@ -7,8 +7,7 @@ sigma 0.25; GoCu defaults: K = 50, goal buffer 1500, memory bank 10,000, P_m = 2
 pretraining on 10,000 random-policy observations) and samples the process's resident set size (psutil RSS)
 at every rollout end (every ``n_envs * n_steps`` = 2048 steps). Prints the command, seed and machine, a
 sample table (each line also says where the curiosity's time went since the line before: the rollout's own time in
-the module, the part of it spent waiting for the scoring worker, the worker's scoring, which overlaps the env
-steps, and the VAE and predictor updates), and a summary:
+the module, and the VAE and predictor updates), and a summary:
 
 * start: RSS after the imports, before the model exists;
 * warm: RSS at the first rollout end after ``--warmup`` steps (default 25% of the run, at least one P_vae

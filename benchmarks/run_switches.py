@@ -10,6 +10,7 @@ import numpy as np
 
 from run_settings import CURIOUS
 from sb3_gocu.curiosity import GoalCuriosityModule
+from sb3_gocu.curiosity.reward import revisit_factor
 
 #: how ``replace_curiosity`` replaces r_gc (ablations and the learning test's broken variants; not library settings)
 REPLACEMENTS = ("constant", "zero", "negative")
@@ -26,27 +27,29 @@ def replace_curiosity(module: GoalCuriosityModule | None, how: str) -> None:
         raise ValueError(f"how must be one of {REPLACEMENTS}, got {how!r}")
     if module is None:
         raise SystemExit(f"replacing r_gc applies to the curious algos {CURIOUS}")
-    take = module.scorer.take
+    score = module.scorer.score
     sums = [0.0, 0.0]  # sum of the paid r_gc, visits paid
 
-    def take_replaced(ticket: Any) -> None:
-        take(ticket)
-        if how == "zero":  # new arrays: the episode memos keep the true values
-            ticket.rewards = np.zeros_like(ticket.rewards)
-            return
+    def score_replaced(raw: Any, env_indices: np.ndarray, keys: list[bytes], *args: Any) -> tuple[np.ndarray, np.ndarray]:
+        rewards, phi = score(raw, env_indices, keys, *args)  # the episode memos keep the true values
+        if how == "zero":
+            return np.zeros_like(rewards), phi
         if how == "negative":
-            ticket.rewards = -ticket.rewards
-            return
-        rewards = ticket.rewards.astype(np.float64)
-        paid = np.ones(len(rewards)) if ticket.factor is None else ticket.factor.astype(np.float64)
-        finite = np.isfinite(rewards)
-        if ticket.recording:
-            sums[0] += float((rewards * paid)[finite].sum())
+            return -rewards, phi
+        decay = module.config.revisit_decay
+        paid = np.ones(len(rewards))  # the revisit factor this step will pay (the module counts the visit after scoring)
+        if decay != "none":
+            visits = np.array([module.episodes.visits[e].get(k, 0) + 1 for e, k in zip(env_indices, keys)])
+            paid = revisit_factor(visits, decay).astype(np.float64)
+        values = rewards.astype(np.float64)
+        finite = np.isfinite(values)
+        if module.recording:
+            sums[0] += float((values * paid)[finite].sum())
             sums[1] += float(paid[finite].sum())
-        mean = sums[0] / sums[1] if sums[1] > 0 else float(np.mean(rewards[finite])) if finite.any() else 0.0
-        ticket.rewards = np.full(len(rewards), mean, dtype=np.float32)
+        mean = sums[0] / sums[1] if sums[1] > 0 else float(np.mean(values[finite])) if finite.any() else 0.0
+        return np.full(len(rewards), mean, dtype=np.float32), phi
 
-    module.scorer.take = take_replaced
+    module.scorer.score = score_replaced
 
 
 def refill_before_training(model: Any) -> None:

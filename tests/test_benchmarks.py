@@ -569,13 +569,14 @@ def test_constant_curiosity_pays_one_value(se, tmp_path):
 
     def spy(module, how):
         original(module, how)
-        take = module.scorer.take
+        score = module.scorer.score
 
-        def recording_take(ticket):
-            take(ticket)
-            seen.append(ticket.rewards.copy())
+        def recording_score(*args):
+            rewards, phi = score(*args)
+            seen.append(rewards.copy())
+            return rewards, phi
 
-        module.scorer.take = recording_take
+        module.scorer.score = recording_score
 
     se.replace_curiosity = spy
     try:
@@ -604,21 +605,23 @@ def test_replace_curiosity_zero_and_negative(se, how):
     model = PPO_GoCu("CnnPolicy", make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=4, seed=0), n_steps=128, seed=0, curiosity_kwargs=TINY_IMAGE_CURIOSITY)
     scorer = model.curiosity.scorer
     true, seen = [], []
-    take = scorer.take
+    score = scorer.score
 
-    def recording_take(ticket):
-        take(ticket)
-        true.append(ticket.rewards.copy())
+    def recording_score(*args):
+        rewards, phi = score(*args)
+        true.append(rewards.copy())
+        return rewards, phi
 
-    scorer.take = recording_take
+    scorer.score = recording_score
     se.replace_curiosity(model.curiosity, how)
-    replaced = scorer.take
+    replaced = scorer.score
 
-    def recording_replaced(ticket):
-        replaced(ticket)
-        seen.append(ticket.rewards.copy())
+    def recording_replaced(*args):
+        rewards, phi = replaced(*args)
+        seen.append(rewards.copy())
+        return rewards, phi
 
-    scorer.take = recording_replaced
+    scorer.score = recording_replaced
     model.learn(1024)
     assert len(seen) > 100 and len(seen) == len(true)
     true_all, seen_all = np.concatenate(true), np.concatenate(seen)

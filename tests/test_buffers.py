@@ -78,16 +78,12 @@ def test_non_episodic_curiosity_stream_ignores_episode_ends():
     assert buf.intrinsic_returns[:, 0].tolist() == pytest.approx([1.875, 1.75, 1.5, 1.0])
 
 
-@pytest.mark.parametrize("in_worker", [True, False])
 @pytest.mark.parametrize("episodic", [True, False])
-def test_rollout_bootstraps_both_heads_on_truncation(episodic, in_worker):
+def test_rollout_bootstraps_both_heads_on_truncation(episodic):
     env = make_vec_env(lambda: ChainEnv(length=50, max_steps=3), n_envs=1, seed=0)
     # learning_rate=0 keeps the critic as it was during the rollout, so the bootstrap can be recomputed
     model = PPO_GoCu("MlpPolicy", env, n_steps=6, batch_size=6, n_epochs=1, seed=0, gamma=0.9, learning_rate=0.0, intrinsic_episodic=episodic,
                      curiosity_kwargs={**SMALL_CURIOSITY, "intrinsic_gamma": 0.7, "pretrain_steps": 0})
-    if not in_worker:  # every step scored in the training thread
-        dispatch = model.curiosity.scorer.dispatch
-        model.curiosity.scorer.dispatch = lambda ticket, background: dispatch(ticket, False)
     infos_log = []
     original_step = model.env.step_wait
 

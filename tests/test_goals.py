@@ -242,12 +242,6 @@ def test_predictor_pairs_are_deduplicated_with_their_multiplicity_as_weight():
     full = f(s_all[:, 0], g_all[:, 0], d_all).mean()
     weighted = (job.weights * f(job.phi_s[:, 0], job.phi_g[:, 0], job.dist)).mean()
     assert weighted.item() == pytest.approx(full.item(), rel=1e-5)
-    # without de-duplication every drawn pair is kept with weight 1
-    plain = GoalCuriosityModule(space, seed=0, predictor_dedupe=False, **kwargs)
-    plain.trajectories = mod.trajectories
-    plain.rng.bit_generator.state = state
-    job_plain = plain.predictor_job()
-    assert len(job_plain.phi_s) == 400 and bool((job_plain.weights == 1).all())
 
 
 def test_every_finished_episode_waits_for_goal_selection():

@@ -143,7 +143,6 @@ BOX = ChainEnv().observation_space
         (dict(alpha=True), r"alpha must be a finite number, got True"),
         (dict(vae_lr=[1e-3]), r"vae_lr must be a finite number, got \[0.001\]"),
         (dict(vae_dedupe="no"), r"vae_dedupe must be True or False, got 'no'"),
-        (dict(predictor_dedupe=0), r"predictor_dedupe must be True or False, got 0"),
         (dict(vae_dedupe=None), r"vae_dedupe must be True or False, got None"),
         (dict(first_visit_distance=1), r"first_visit_distance must be True or False, got 1"),
     ],

@@ -27,17 +27,17 @@ VAE_HOLDOUT = 0.1
 EPISODE_MEMORY = 4096
 
 #: The paper's value of every setting whose default departs from it. ``GoalCuriosityModule(space,
-#: **PAPER_CURIOSITY_KWARGS)`` is the paper's module with two differences that cannot be expressed: the predictor
+#: **PAPER_CURIOSITY_KWARGS)`` is the paper's module with three differences that cannot be expressed: the predictor
 #: trains on ``predictor_pairs`` pairs drawn from the steps since its last update (the paper: every new pair; 20,000
-#: steps x d_max = 30 is 600,000 pairs, which 15 epochs would take hours per update on a CPU), and s_0, the reset
-#: observation of an episode, is not recorded (only states reached by a step are).
+#: steps x d_max = 30 is 600,000 pairs, which 15 epochs would take hours per update on a CPU), a pair drawn n times
+#: trains once with weight n (the same objective, fewer optimiser steps), and s_0, the reset observation of an
+#: episode, is not recorded (only states reached by a step are).
 PAPER_CURIOSITY_KWARGS: Mapping[str, Any] = MappingProxyType(
     dict(
         revisit_decay="none",  # every visit of a state pays eq 13 (default: only the first visit in an episode)
         pair_labels="eq16",  # pairs of one episode at gaps 1..d_max labelled by eq 15-16 (default: reachability pairs)
         first_visit_distance=False,  # dist(s, g) of eq 15 is the step gap y (default: steps to g's first visit)
         predictor_epochs=15,  # 15 epochs per update (default 1: on a bounded draw 15 epochs overfit it)
-        predictor_dedupe=False,  # every drawn pair once (default: distinct pairs weighted by count)
         vae_patience=0,  # every epoch of an update on the whole bank (default: early stopping with patience 1)
         vae_update_epochs=20,  # 20 epochs per VAE update, as the pretraining (default: at most 3 from the VAE's weights)
         vae_pixel_weighting=0.0,  # every pixel weighs 1 in eq 8 (default for images: rare colours weigh more)
@@ -75,7 +75,6 @@ class CuriosityConfig:
     predictor_epochs: int = 1  #: epochs over the drawn pairs at each predictor update (0: never trained, only scored)
     predictor_pairs: int = 16384  #: training pairs drawn per predictor update
     predictor_train_freq: int = 20_000  #: P_m, recorded env steps between predictor updates
-    predictor_dedupe: bool = True  #: train on the distinct drawn pairs, each weighted by its count
     embed_dim: int = 128  #: size of the embedding phi (the FC layer after the encoder)
     latent_dim: int = 10  #: size of the VAE latent (mu, sigma)
     vae_beta: float = 1.0  #: beta of eq 8
@@ -103,7 +102,7 @@ class CuriosityConfig:
         for name in numbers:
             value = getattr(self, name)
             check(is_number(value) and math.isfinite(value), f"{name} must be a finite number, got {value!r}")
-        for name in ("first_visit_distance", "predictor_dedupe", "vae_dedupe"):
+        for name in ("first_visit_distance", "vae_dedupe"):
             check(is_flag(getattr(self, name)), f"{name} must be True or False, got {getattr(self, name)!r}")
         check(self.goal_buffer_size >= 1, f"goal_buffer_size must be >= 1, got {self.goal_buffer_size}")
         check(1 <= self.n_goals <= self.goal_buffer_size,

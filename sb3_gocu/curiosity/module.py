@@ -46,7 +46,7 @@ from sb3_gocu.curiosity.training import (
 #: keywords of earlier versions: experiments removed, or speed-ups now fixed (docs/results.md, "What was retired")
 RETIRED = ("train_in_background", "predictor_lead", "update_threads", "vae_shards", "refit_predictor_after_vae", "train_dtype",
            "record_start_states", "split_updates", "queue_during_update", "overlap_ppo_update", "scoring_process", "scoring_dtype",
-           "vae_holdout", "episode_memory", "vae_pretrain_patience", "soft_labels")
+           "vae_holdout", "episode_memory", "vae_pretrain_patience", "soft_labels", "predictor_dedupe")
 
 
 class GoalCuriosityModule:

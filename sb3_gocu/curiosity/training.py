@@ -315,8 +315,9 @@ class Trainer:
     # ------------------------------------------------------------------ predictor
     def predictor_job(self, phi_s: th.Tensor, phi_g: th.Tensor, dist: th.Tensor, target: th.Tensor | None = None,
                       quality: QualityPairs | None = None) -> PredictorJob | None:
-        """The job of a predictor update on drawn pairs: non-finite embeddings dropped, duplicates merged
-        (``predictor_dedupe``); None when fewer than two pairs are left.
+        """The job of a predictor update on drawn pairs: non-finite embeddings dropped, each distinct pair kept once
+        and weighted by its count (the same objective as the whole draw, fewer optimiser steps); None when fewer than
+        two pairs are left.
 
         :param target: each pair's label (None: eq 15-16, at fit time)
         :param quality: held-out pairs that score the fit"""
@@ -326,7 +327,7 @@ class Trainer:
             return None
         drawn = len(columns[0])
         weights = th.ones(drawn)
-        if self.config.predictor_dedupe and drawn:
+        if drawn:
             rows = np.ascontiguousarray(th.cat(columns, dim=1).numpy())
             _, first, counts = np.unique(rows.view(np.dtype((np.void, rows.itemsize * rows.shape[1]))).ravel(), return_index=True, return_counts=True)
             if len(first) < 2:

@@ -41,7 +41,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
-from sb3_gocu import PAPER_PPO_KWARGS, PaperCNN, PPO_GoCu
+from sb3_gocu import PAPER_PPO_KWARGS, GoCuVecEnvWrapper, PaperCNN, PPO_GoCu
 from sb3_gocu.callbacks import GoCuCallback
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -164,6 +164,9 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         pass
     elif algo == "ppo":
         model = PPO("CnnPolicy", venv, seed=seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **PPO_SETTINGS)
+    elif algo == "ppo_sum":  # the drop-in pipeline: plain PPO on the sum-mode wrapper, with GoCuCallback
+        venv = GoCuVecEnvWrapper(venv, mode="sum", curiosity_kwargs={**curiosity_kwargs, **overrides})
+        model = PPO("CnnPolicy", venv, seed=seed, policy_kwargs=dict(features_extractor_class=PaperCNN), **PPO_SETTINGS)
     elif gocu_model is not None:
         # a trained agent: its policy moves (fewer repeated states, more scoring), its goal buffer is full
         model = PPO_GoCu.load(gocu_model, env=venv, device="cpu")
@@ -177,14 +180,15 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
             raise ValueError(f"--also-model-kwargs: PPO_GoCu has no attribute {name!r}")
         setattr(model, name, value)
     timer.wrap(model, "train", "ppo_update")
-    if algo == "ppo_gocu":
+    mod = model.curiosity if algo == "ppo_gocu" else venv.module if algo == "ppo_sum" else None
+    if mod is not None:
         # wall time of the curiosity updates, run at each rollout's end
-        timer.wrap(model.curiosity, "maybe_train", "curiosity_updates")
+        timer.wrap(mod, "maybe_train", "curiosity_updates")
     timer.wrap(model, "collect_rollouts", "rollout")
     pretrain_before = pretrain_timer.totals.get("pretrain", 0.0)
     clock = RolloutClock()
     t0 = time.perf_counter()
-    model.learn(timesteps, callback=clock)
+    model.learn(timesteps, callback=[clock, GoCuCallback()] if algo == "ppo_sum" else clock)
     t_end = time.perf_counter()
     total = t_end - t0
     out = {"total_s": total, "steps": float(model.num_timesteps), "steps_per_s": model.num_timesteps / total, "n_envs": float(venv.num_envs)}
@@ -193,15 +197,11 @@ def run(algo: str, env_id: str, timesteps: int, seed: int, curiosity_kwargs: dic
         out["past_from_step"] = float(after[0][0])
         out["past_steps_per_s"] = (model.num_timesteps - after[0][0]) / (t_end - after[0][1])
     out.update({f"{k}_s": v for k, v in timer.totals.items()})
-    if algo == "ppo_gocu":
-        mod = model.curiosity
+    if mod is not None:
         out["curiosity_inference_s"] = mod.time_inference
         out["vae_training_s"] = mod.time_vae
         out["predictor_training_s"] = mod.time_predictor
         out["cache_hit_rate"] = mod.scorer.cache_hits / max(1, mod.scorer.cache_lookups)
-        # with overlap_ppo_update an update is waited for at the next rollout's first step (or at the end of
-        # learn), not in maybe_train
-        # the end of learn waits for an update still running (outside any rollout): reported on its own row
         out["pretrain_s"] = pretrain_timer.totals.get("pretrain", 0.0) - pretrain_before
     out["policy_and_bookkeeping_s"] = (
         out["rollout_s"] - out["env_s"] - out.get("curiosity_inference_s", 0.0) - out.get("curiosity_updates_s", 0.0)
@@ -259,6 +259,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--also-curiosity-kwargs", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with these GoalCuriosityModule keywords on top of --curiosity-kwargs, "
                         "e.g. '{\"vae_update_epochs\": 20}' (another run each time the option is given)")
+    parser.add_argument("--also-sum", action="store_true",
+                        help="also run the drop-in pipeline: plain PPO on GoCuVecEnvWrapper(mode='sum') with GoCuCallback "
+                        "(one value head; --curiosity-kwargs apply)")
     parser.add_argument("--also-arm", action="append", default=None, metavar="JSON",
                         help="also run PPO_GoCu with both kinds of setting, e.g. '{\"curiosity\": {\"scoring_dtype\": \"bfloat16\"}, "
                         "\"model\": {\"n_epochs\": 2}}' (another run each time the option is given)")
@@ -302,6 +305,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                                                  overrides=arm.get("curiosity"), model_attrs={**base_model, **arm.get("model", {})}, zoo=zoo,
                                                                  past=args.past)))
         labels_extra[f"ppo_gocu_arm_{i}"] = text
+    if args.also_sum:
+        if zoo:
+            parser.error("--also-sum builds the agents itself: not with --zoo")
+        thunks.append(("ppo_sum", lambda: run("ppo_sum", args.env, args.timesteps, args.seed, curiosity_kwargs, past=args.past)))
+        labels_extra["ppo_sum"] = "PPO + wrapper (sum)"
     for name, thunk in (reversed(thunks) if args.reverse else thunks):
         results[name] = thunk()
         print(f"{name}: {results[name]['steps_per_s']:.0f} steps/s", flush=True)

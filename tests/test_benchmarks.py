@@ -429,7 +429,7 @@ def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_ti
     trains the same weights, an arm that changes
     the training (another ``predictor_lr``) does not, and each arm's time is split into its parts; ``--reverse``
     runs the arms in the other order; ``--past 2048`` times the second rollout on, and the summary line gives both
-    ratios."""
+    ratios; ``--also-sum`` adds the drop-in pipeline (plain PPO on the sum-mode wrapper)."""
     bench = load_script("throughput", "benchmarks/throughput.py")
     threads = th.get_num_threads()
     curiosity = TINY_IMAGE_CURIOSITY
@@ -438,11 +438,13 @@ def test_throughput_benchmark_times_each_arm_and_shows_equal_weights_for_wall_ti
             "--env", "GoCu/DoorKey-5x5-v0", "--timesteps", "4096", "--threads", "1", "--malloc", "default",
             "--curiosity-kwargs", json.dumps(curiosity), "--json", str(tmp_path / "t.json"), "--past", "2048",
             "--reverse", "--also-arm", json.dumps({}),
-            "--also-arm", json.dumps({"curiosity": {"predictor_lr": 1e-2}}),
+            "--also-arm", json.dumps({"curiosity": {"predictor_lr": 1e-2}}), "--also-sum",
         ])
     finally:
         th.set_num_threads(threads)
-    assert list(results) == ["ppo_gocu_arm_1", "ppo_gocu_arm_0", "ppo_gocu", "ppo"], "--reverse: the last arm first"
+    assert list(results) == ["ppo_sum", "ppo_gocu_arm_1", "ppo_gocu_arm_0", "ppo_gocu", "ppo"], "--reverse: the last arm first"
+    dropin = results["ppo_sum"]  # plain PPO on the sum-mode wrapper: the module scores, pretrains and trains
+    assert dropin["steps"] == 4096 and dropin["curiosity_inference_s"] > 0 and dropin["pretrain_s"] > 0 and dropin["predictor_training_s"] > 0
     ppo, gocu, again, other_lr = (results[k] for k in ("ppo", "ppo_gocu", "ppo_gocu_arm_0", "ppo_gocu_arm_1"))
     assert gocu["weights_sha256"] == again["weights_sha256"]
     assert len({ppo["weights_sha256"], gocu["weights_sha256"], other_lr["weights_sha256"]}) == 3

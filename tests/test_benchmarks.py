@@ -563,6 +563,18 @@ def test_ppo_rnd_runs_and_resumes_with_its_rnd_state(se, tmp_path):
     assert resumed.rnd.obs_stats.count.item() == 3072  # continued from the checkpoint's statistics, not from zero
 
 
+def record_scores(scorer, into: list) -> None:
+    """Wrap ``scorer.score`` (as it is now) so that a copy of every batch of rewards it returns lands in ``into``."""
+    score = scorer.score
+
+    def recording(*args):
+        rewards, phi = score(*args)
+        into.append(rewards.copy())
+        return rewards, phi
+
+    scorer.score = recording
+
+
 def test_constant_curiosity_pays_one_value(se, tmp_path):
     """--constant-curiosity: every paid r_gc of a rollout is one value (the running mean), unpaid revisits 0."""
     out = tmp_path / "constant"
@@ -571,14 +583,7 @@ def test_constant_curiosity_pays_one_value(se, tmp_path):
 
     def spy(module, how):
         original(module, how)
-        score = module.scorer.score
-
-        def recording_score(*args):
-            rewards, phi = score(*args)
-            seen.append(rewards.copy())
-            return rewards, phi
-
-        module.scorer.score = recording_score
+        record_scores(module.scorer, seen)
 
     se.replace_curiosity = spy
     try:
@@ -605,25 +610,10 @@ def test_replace_curiosity_zero_and_negative(se, how):
     from sb3_gocu import PPO_GoCu
 
     model = PPO_GoCu("CnnPolicy", make_vec_env("GoCu/DoorKey-5x5-v0", n_envs=4, seed=0), n_steps=128, seed=0, curiosity_kwargs=TINY_IMAGE_CURIOSITY)
-    scorer = model.curiosity.scorer
     true, seen = [], []
-    score = scorer.score
-
-    def recording_score(*args):
-        rewards, phi = score(*args)
-        true.append(rewards.copy())
-        return rewards, phi
-
-    scorer.score = recording_score
+    record_scores(model.curiosity.scorer, true)
     se.replace_curiosity(model.curiosity, how)
-    replaced = scorer.score
-
-    def recording_replaced(*args):
-        rewards, phi = replaced(*args)
-        seen.append(rewards.copy())
-        return rewards, phi
-
-    scorer.score = recording_replaced
+    record_scores(model.curiosity.scorer, seen)
     model.learn(1024)
     assert len(seen) > 100 and len(seen) == len(true)
     true_all, seen_all = np.concatenate(true), np.concatenate(seen)

@@ -11,7 +11,10 @@ report in ``infos``:
 Where an episode ends, Monitor's ``info["episode"]`` gets ``"gocu_r"``: the episode's sum of normalised r_gc (what
 ``rollout/ep_intrinsic_rew_mean`` averages).
 
-``mode="sum"`` returns ``r_e + intrinsic_coef * r_gc`` as the reward (for any SB3 algorithm);
+``mode="sum"`` returns ``r_e + intrinsic_coef * (r_gc - mean r_gc)`` as the reward (for any SB3 algorithm): r_gc
+centred on its running mean over the recorded steps (``module.reward_centre``), so that a longer episode is worth no
+more in itself and a learner with one episodic value head is not paid to avoid the goal (``centred=False``: the
+paper's ``r_e + intrinsic_coef * r_gc``);
 ``mode="separate"`` leaves the reward extrinsic (for :class:`~sb3_gocu.PPO_GoCu`, which reads r_gc from
 ``infos``). Put the wrappers *above* ``Monitor`` (as ``make_vec_env`` does), so that the episode returns
 Monitor reports stay extrinsic.
@@ -60,9 +63,14 @@ class _RewardReport:
         mode: str,
         intrinsic_coef: float | None,
         curiosity_kwargs: dict[str, Any] | None,
+        centred: bool,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if not isinstance(centred, (bool, np.bool_)):
+            raise ValueError(f"centred must be True or False, got {centred!r}")
+        if mode == "separate" and centred:
+            raise ValueError("centred applies to mode='sum' only: in mode='separate' the reward is r_e and PPO_GoCu's curiosity head runs across episodes")
         if mode == "separate" and intrinsic_coef is not None:
             raise ValueError(
                 "intrinsic_coef weighs r_gc in mode='sum' only; in mode='separate' PPO_GoCu weighs the curiosity "
@@ -74,11 +82,17 @@ class _RewardReport:
         self.intrinsic_coef: float | None = None
         if mode == "sum":
             self.intrinsic_coef = check_intrinsic_coef(DEFAULT_INTRINSIC_COEF if intrinsic_coef is None else intrinsic_coef)
+        self.centred = bool(centred)
         self._episode_sums: dict[int, float] = {}  # env -> normalised r_gc summed over its current episode
 
-    def _report(self, info: dict, extrinsic: float, raw: float, normalized: float, env: int = 0) -> float:
+    def _centre(self) -> float:
+        """What the sum subtracts from this step's normalised r_gc: the running mean before the step (0 uncentred)."""
+        # getattr: a wrapper pickled by an older version has no flag and paid the uncentred sum
+        return self.module.reward_centre.mean if self.mode == "sum" and getattr(self, "centred", False) else 0.0
+
+    def _report(self, info: dict, extrinsic: float, raw: float, normalized: float, env: int = 0, centre: float = 0.0) -> float:
         """Write the three rewards into ``info`` (and the episode's curiosity sum into Monitor's ``info["episode"]``
-        at its end) and return the reward the algorithm sees."""
+        at its end) and return the reward the algorithm sees (``centre`` is subtracted from r_gc in the sum)."""
         info["extrinsic_reward"] = float(extrinsic)
         info["gocu_raw_reward"] = float(raw)
         info["gocu_reward"] = float(normalized)
@@ -86,7 +100,7 @@ class _RewardReport:
         if isinstance(info.get("episode"), dict):
             info["episode"]["gocu_r"] = self._episode_sums.pop(env)
         # by mode, not by intrinsic_coef: an env stack pickled by an older version holds 0.25 in mode="separate" too
-        return float(extrinsic) + self.intrinsic_coef * float(normalized) if self.mode == "sum" else float(extrinsic)
+        return float(extrinsic) + self.intrinsic_coef * (float(normalized) - centre) if self.mode == "sum" else float(extrinsic)
 
 
 class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
@@ -95,10 +109,11 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
     :param venv: the vectorised environment (with ``Monitor`` below this wrapper)
     :param module: the curiosity module; default: a new one built from ``curiosity_kwargs`` and the
         env's observation space
-    :param mode: ``"sum"`` (reward = r_e + intrinsic_coef * r_gc) or ``"separate"`` (reward = r_e)
+    :param mode: ``"sum"`` (reward = r_e + intrinsic_coef * (r_gc - its running mean)) or ``"separate"`` (reward = r_e)
     :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only, default 0.25 as
         PPO_GoCu's; given with ``mode="separate"`` it is an error)
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
+    :param centred: ``mode="sum"`` only: subtract r_gc's running mean in the sum (False: the paper's uncentred sum)
     """
 
     def __init__(
@@ -108,9 +123,10 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         mode: str = "sum",
         intrinsic_coef: float | None = None,
         curiosity_kwargs: dict[str, Any] | None = None,
+        centred: bool | None = None,
     ) -> None:
         VecEnvWrapper.__init__(self, venv)
-        self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs)
+        self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs, mode == "sum" if centred is None else centred)
         self.module.ensure_envs(self.num_envs)
 
     def reset(self) -> Any:
@@ -135,8 +151,9 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
                     reached = obs.copy()
                     for i in done_idx:
                         reached[i] = infos[i]["terminal_observation"]
+        centre = self._centre()
         raw, normalized = self.module.step(reached, dones)
-        rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i], i) for i, info in enumerate(infos)], dtype=np.float32)
+        rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i], i, centre) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
 
 
@@ -151,6 +168,7 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
     :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only, default 0.25 as
         PPO_GoCu's; given with ``mode="separate"`` it is an error)
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
+    :param centred: ``mode="sum"`` only: subtract r_gc's running mean in the sum, as for :class:`GoCuVecEnvWrapper`
     """
 
     def __init__(
@@ -160,9 +178,10 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
         mode: str = "sum",
         intrinsic_coef: float | None = None,
         curiosity_kwargs: dict[str, Any] | None = None,
+        centred: bool | None = None,
     ) -> None:
         gym.Wrapper.__init__(self, env)
-        self._setup_gocu(env.observation_space, module, mode, intrinsic_coef, curiosity_kwargs)
+        self._setup_gocu(env.observation_space, module, mode, intrinsic_coef, curiosity_kwargs, mode == "sum" if centred is None else centred)
         self.env_index = self.module.register_env()
         self._index = np.array([self.env_index])
 
@@ -181,8 +200,9 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         obs, reward, terminated, truncated, info = self.env.step(action)
         done = bool(terminated or truncated)
+        centre = self._centre()
         raw, normalized = self.module.step(self._batch(obs), np.array([done]), self._index)
-        return obs, self._report(info, reward, raw[0], normalized[0]), terminated, truncated, info
+        return obs, self._report(info, reward, raw[0], normalized[0], centre=centre), terminated, truncated, info
 
 
 def find_gocu_wrappers(env: VecEnv | gym.Env) -> list[GoCuVecEnvWrapper | GoCuWrapper]:

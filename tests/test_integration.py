@@ -96,9 +96,11 @@ def test_plain_sb3_algorithms_train_with_sum_mode(algo):
     model.learn(640, callback=Spy())
     assert venv.module.pretrained and venv.module.last_predictor_update > 0
     rewards, extrinsic, intrinsic = map(np.stack, zip(*seen))
-    # what the algorithm sees differs from the extrinsic reward by exactly sigma x the reported r_gc (sigma 0.25 by default)
+    # what the algorithm sees differs from the extrinsic reward by sigma x the reported r_gc less its running mean, one
+    # mean for all envs of a step (sigma 0.25 by default)
     assert venv.intrinsic_coef == PPO_GoCu("MlpPolicy", chain_venv()).intrinsic_coef == 0.25
-    assert np.allclose(rewards - extrinsic, 0.25 * intrinsic, atol=1e-6)
+    shift = rewards - extrinsic - 0.25 * intrinsic
+    assert np.allclose(shift, shift[:, :1], atol=1e-6) and (shift < -1e-4).all()
     assert np.abs(intrinsic).max() > 0
 
 
@@ -202,3 +204,37 @@ def test_a_separate_mode_wrapper_pays_extrinsic_rewards_even_holding_a_coefficie
         _, rewards, _, infos = venv.step(np.ones(2, dtype=np.int64))
         assert np.array_equal(rewards, [i["extrinsic_reward"] for i in infos])
     assert any(i["gocu_reward"] != 0 for i in infos)
+
+
+@pytest.mark.parametrize("centred", [True, False])
+def test_sum_mode_pays_r_gc_less_its_running_mean_of_the_steps_before(centred):
+    """mode="sum" pays r_e + sigma (r_gc - the mean of the normalised r_gc recorded before this step), by hand; centred=False
+    the paper's r_e + sigma r_gc. The mean is the module's (saved with it), updated only while recording."""
+    venv = GoCuVecEnvWrapper(chain_venv(), mode="sum", curiosity_kwargs=SMALL_CURIOSITY, centred=centred)
+    venv.module.pretrain()
+    venv.module.recording = True
+    venv.reset()
+    paid: list[float] = []
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        _, rewards, _, infos = venv.step(rng.integers(2, size=2))
+        centre = float(np.mean(paid)) if paid and centred else 0.0
+        expected = [i["extrinsic_reward"] + 0.25 * (i["gocu_reward"] - centre) for i in infos]
+        assert np.allclose(rewards, expected, atol=1e-6)
+        paid += [i["gocu_reward"] for i in infos]
+    assert venv.module.reward_centre.mean == pytest.approx(np.mean(paid)) and np.mean(paid) > 0
+    other = GoalCuriosityModule(ChainEnv().observation_space, **SMALL_CURIOSITY)
+    other.load_state_dict(venv.module.state_dict())
+    assert other.reward_centre.mean == venv.module.reward_centre.mean and other.reward_centre.count == 80
+    venv.module.recording = False
+    venv.step(np.ones(2, dtype=np.int64))
+    assert venv.module.reward_centre.count == 80
+
+
+def test_centred_is_checked():
+    with pytest.raises(ValueError, match="centred must be True or False"):
+        GoCuVecEnvWrapper(chain_venv(), curiosity_kwargs=SMALL_CURIOSITY, centred=1)
+    with pytest.raises(ValueError, match="centred applies to mode='sum'"):
+        GoCuVecEnvWrapper(chain_venv(), mode="separate", curiosity_kwargs=SMALL_CURIOSITY, centred=True)
+    assert GoCuVecEnvWrapper(chain_venv(), curiosity_kwargs=SMALL_CURIOSITY).centred
+    assert not GoCuVecEnvWrapper(chain_venv(), mode="separate", curiosity_kwargs=SMALL_CURIOSITY).centred

@@ -12,6 +12,7 @@ from sb3_gocu.curiosity import (
     GoalCuriosityModule,
     IntrinsicReturnNormalizer,
     MasteryPredictor,
+    RunningMean,
     complexity_score,
     curiosity_reward,
     mastered_probability,
@@ -250,3 +251,17 @@ def test_large_images_are_kept_as_block_means(layout):
         assert ObservationAdapter(spaces.Box(0, 255, (side, side, 3), np.uint8)).image_downsample == f
     with pytest.raises(ValueError, match="a 300x2 image would keep no pixel"):
         ObservationAdapter(spaces.Box(0, 255, (300, 2), np.uint8))
+
+
+def test_running_mean_is_the_plain_mean_then_an_average_over_its_horizon():
+    rm = RunningMean(horizon=4)
+    rm.update(np.array([1.0, 3.0]))
+    assert rm.mean == 2.0 and rm.count == 2
+    rm.update(np.array([5.0]))
+    assert rm.mean == 3.0  # (1 + 3 + 5) / 3
+    rm.update(np.array([7.0, 9.0]))  # full: 2 of 4 weight on the batch's mean 8
+    assert rm.mean == pytest.approx(3.0 + 0.5 * (8.0 - 3.0))
+    rm.update(np.array([], dtype=np.float32))
+    assert rm.count == 5
+    with pytest.raises(ValueError, match="horizon"):
+        RunningMean(0)

@@ -8,6 +8,7 @@ from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reward import (
     AGGREGATIONS,
     IntrinsicReturnNormalizer,
+    RunningMean,
     RunningMeanStd,
     complexity_score,
     curiosity_reward,
@@ -31,6 +32,7 @@ __all__ = [
     "MlpVAE",
     "ObservationAdapter",
     "PixelWeights",
+    "RunningMean",
     "RunningMeanStd",
     "TrajectoryStore",
     "complexity_score",

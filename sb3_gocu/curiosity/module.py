@@ -36,7 +36,7 @@ from sb3_gocu.curiosity.goals import GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reachability import PREDICTOR_HOLDOUT, QUALITY_KEYS, QualityPairs, reachability_pairs
-from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, revisit_factor
+from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, RunningMean, revisit_factor
 from sb3_gocu.curiosity.scoring import Scorer, eq13_rows
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, observation_key
 from sb3_gocu.curiosity.training import (
@@ -47,6 +47,9 @@ from sb3_gocu.curiosity.training import (
 RETIRED = ("train_in_background", "predictor_lead", "update_threads", "vae_shards", "refit_predictor_after_vae", "train_dtype",
            "record_start_states", "split_updates", "queue_during_update", "overlap_ppo_update", "scoring_process", "scoring_dtype",
            "vae_holdout", "episode_memory", "vae_pretrain_patience", "soft_labels", "predictor_dedupe")
+#: recorded steps the running mean of the normalised r_gc spans (``GoalCuriosityModule.reward_centre``): eight PPO rollouts
+#: of 16 envs x 128 steps
+CENTRE_HORIZON = 16_384
 
 
 class GoalCuriosityModule:
@@ -93,6 +96,9 @@ class GoalCuriosityModule:
         self.goal_buffer = GoalBuffer(cfg.goal_buffer_size, raw_shape, raw_dtype, cfg.embed_dim, cfg.goal_novelty)
         self.memory = MemoryBank(cfg.memory_size, raw_shape, raw_dtype)
         self.normalizer = IntrinsicReturnNormalizer(cfg.intrinsic_gamma)
+        #: running mean of the normalised r_gc over the recorded steps (about the last CENTRE_HORIZON): what the drop-in
+        #: wrapper's sum subtracts, so that an episode is worth no more for being longer
+        self.reward_centre = RunningMean(CENTRE_HORIZON)
         self.episodes, self.trajectories = self._new_env_stores()
         to_tensor = functools.partial(self.adapter.to_tensor, device=self.device)
         self.scorer = Scorer(self.episodes, cfg.embed_dim, to_tensor, (cfg.alpha, cfg.aggregation, cfg.reward_scale))
@@ -271,6 +277,7 @@ class GoalCuriosityModule:
             rewards = rewards * revisit_factor(self.episodes.count_visits(keys, env_indices), self.config.revisit_decay)
         normalized = self.normalizer(rewards, env_indices, update=self.recording)
         if self.recording:
+            self.reward_centre.update(normalized)
             self._reward_sums[0] += float(rewards.sum())
             self._reward_sums[1] += float((rewards.astype(np.float64) ** 2).sum())
             self._reward_sums[2] += len(rewards)
@@ -438,6 +445,7 @@ class GoalCuriosityModule:
             "memory": self.memory.state_dict(),
             "trajectories": self.trajectories.state_dict(),
             "normalizer": self.normalizer.state_dict(),
+            "reward_centre": self.reward_centre.state_dict(),
             "rng": self.rng.bit_generator.state,
             "torch_rng": self.trainer.generator.get_state(),
             "envs": self.episodes.state_dict(),
@@ -477,6 +485,8 @@ class GoalCuriosityModule:
         self.goal_buffer.load_state_dict(state["goal_buffer"])
         self.memory.load_state_dict(state["memory"])
         self.normalizer.load_state_dict(state["normalizer"])
+        if "reward_centre" in state:  # a state saved before the centring starts its mean afresh
+            self.reward_centre.load_state_dict(state["reward_centre"])
         if "rng" in state:
             self.rng.bit_generator.state = state["rng"]
         if "torch_rng" in state:

@@ -1,5 +1,6 @@
 """The formulas of GoCu as plain tensor functions: the curiosity reward (eq 13), its normalisation by the
-running std of intrinsic returns (eq 14), the complexity score (eq 15) and the label probability (eq 16).
+running std of intrinsic returns (eq 14), the complexity score (eq 15) and the label probability (eq 16); and the
+running mean of the normalised reward that the drop-in wrapper's sum subtracts (:class:`RunningMean`).
 """
 
 from __future__ import annotations
@@ -90,6 +91,34 @@ class RunningMeanStd:
         m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total
         self.var = m2 / total
         self.count = total
+
+
+class RunningMean:
+    """Mean of a stream of batches: the plain mean of everything seen until ``horizon`` samples, then an exponential
+    moving average over about the last ``horizon`` samples (so that it follows a reward that changes as its networks
+    learn).
+
+    :param horizon: samples the average spans once it is full (> 0)
+    """
+
+    def __init__(self, horizon: int) -> None:
+        if not (isinstance(horizon, int) and horizon > 0):
+            raise ValueError(f"horizon must be an int > 0, got {horizon!r}")
+        self.horizon = horizon
+        self.mean = 0.0
+        self.count = 0
+
+    def update(self, x: np.ndarray) -> None:
+        if x.size == 0:
+            return
+        self.count += x.size
+        self.mean += x.size / min(self.count, self.horizon) * (float(np.mean(x, dtype=np.float64)) - self.mean)
+
+    def state_dict(self) -> dict:
+        return {"mean": self.mean, "count": self.count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.mean, self.count = float(state["mean"]), int(state["count"])
 
 
 class IntrinsicReturnNormalizer:

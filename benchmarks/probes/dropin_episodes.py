@@ -84,6 +84,7 @@ def summarise(eps: list[dict[str, Any]], gamma: float, max_steps: int, label: st
         "goal_forgone_discounted": float(np.mean(forgone)) if forgone else float("nan"),
         "centred_per_step_after_door": post_rate - all_rate,
         "centred_goal_forgone_discounted": float(np.mean([(post_rate - all_rate) * f / post_rate for f in forgone])) if forgone else float("nan"),
+        "value_mean": float(np.mean(np.concatenate([e["value"] for e in eps]))),
         "value_before_goal": float(np.mean(pre_goal_v)) if pre_goal_v else float("nan"),
         "value_after_door_timeouts": float(np.mean(np.concatenate(timeout_post_v))) if timeout_post_v else float("nan"),
     }

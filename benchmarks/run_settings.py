@@ -83,4 +83,6 @@ def run_config(args: argparse.Namespace, algo: str, seed: int) -> dict[str, Any]
         cfg["intrinsic_coef"] = args.intrinsic_coef
         if args.constant_curiosity:
             cfg["constant_curiosity"] = True
+        if algo in SUM_ALGOS and getattr(args, "uncentred", False):
+            cfg["uncentred"] = True
     return json.loads(json.dumps(cfg))

@@ -416,7 +416,7 @@ class Run:
         module = GoalCuriosityModule(env.observation_space, seed=self.seed, **curiosity_kwargs(self.args))
         if module_state is not None:
             module.load_state_dict(module_state)
-        return GoCuVecEnvWrapper(env, module=module, mode="sum", intrinsic_coef=self.args.intrinsic_coef)
+        return GoCuVecEnvWrapper(env, module=module, mode="sum", intrinsic_coef=self.args.intrinsic_coef, centred=not self.args.uncentred)
 
     @staticmethod
     def module(model: Any) -> GoalCuriosityModule | None:
@@ -556,6 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--goal-strategy", default=None, choices=list(GOAL_STRATEGIES), help="(default: the module's, proportional)")
     p.add_argument("--n-goals", type=int, default=None, help="K")
     p.add_argument("--intrinsic-coef", type=float, default=0.25, help="sigma of eq 10")
+    p.add_argument("--uncentred", action="store_true", help="the _sum algos: the paper's uncentred sum r_e + sigma r_gc (GoCuVecEnvWrapper(centred=False))")
     p.add_argument("--curiosity-kwargs", default="{}", help="JSON dict of GoalCuriosityModule keywords")
     p.add_argument(
         "--constant-curiosity", action="store_true",

@@ -3,9 +3,8 @@
     python benchmarks/probes/dropin_episodes.py <run>/checkpoints/ppo_sum_seed0 --steps 450560 --episodes 64 --seed 100
 
 Loads a ``ppo_sum`` checkpoint of ``benchmarks/sample_efficiency.py`` (the PPO model and its wrapper's curiosity
-module), plays ``--episodes`` episodes on 16 envs with the stochastic policy, the reward exactly as in training
-(``r_e + sigma * r_gc`` of ``GoCuVecEnvWrapper(mode="sum")``, the module's goals and revisit decay, nothing learned),
-and prints:
+module), plays ``--episodes`` episodes on 16 envs with the stochastic policy, reading each step's r_e and normalised
+r_gc from ``infos`` as in training (the module's goals and revisit decay; nothing learned, nothing recorded), and prints:
 
 * episodes, how many opened the door and how many reached the goal; for those that opened it, the steps from the door
   to the episode's end (goal or time limit);
@@ -84,6 +83,7 @@ def summarise(eps: list[dict[str, Any]], gamma: float, max_steps: int, label: st
         "goal_forgone_discounted": float(np.mean(forgone)) if forgone else float("nan"),
         "centred_per_step_after_door": post_rate - all_rate,
         "centred_goal_forgone_discounted": float(np.mean([(post_rate - all_rate) * f / post_rate for f in forgone])) if forgone else float("nan"),
+        "centred_return_from_start": float(np.mean([np.sum((e["r_i"] - all_rate) * gamma ** np.arange(len(e["r_i"]))) for e in eps])),
         "value_mean": float(np.mean(np.concatenate([e["value"] for e in eps]))),
         "value_before_goal": float(np.mean(pre_goal_v)) if pre_goal_v else float("nan"),
         "value_after_door_timeouts": float(np.mean(np.concatenate(timeout_post_v))) if timeout_post_v else float("nan"),

@@ -214,7 +214,7 @@ def test_other_learners_files_build_plain_and_dropin(algo, tmp_path):
     assert set(plain) == set(dropin) == {f"GoCu/DoorKey-{n}-v0" for n in ("5x5", "8x8", "11x11", "16x16")}
     for env_id, entry in dropin.items():
         (wrapper,) = entry.pop("vec_env_wrapper")
-        assert wrapper == {"sb3_gocu.GoCuVecEnvWrapper": {"mode": "sum", "intrinsic_coef": 0.25}}
+        assert wrapper == {"sb3_gocu.GoCuVecEnvWrapper": {"mode": "sum", "centred": True, "intrinsic_coef": 0.25}}
         assert entry.pop("callback") == "sb3_gocu.GoCuCallback" and entry == plain[env_id]
     assert plain["GoCu/DoorKey-8x8-v0"]["n_timesteps"] == 1e6  # the budget of the paper's Fig. 6 runs here
     for conf in (algo, f"{algo}_dropin"):

@@ -11,12 +11,10 @@ report in ``infos``:
 Where an episode ends, Monitor's ``info["episode"]`` gets ``"gocu_r"``: the episode's sum of normalised r_gc (what
 ``rollout/ep_intrinsic_rew_mean`` averages).
 
-``mode="sum"`` returns ``r_e + intrinsic_coef * (r_gc - mean r_gc)`` as the reward (for any SB3 algorithm), and where an
-episode terminates (not at a time limit, which SB3's algorithms bootstrap) adds ``intrinsic_coef * gamma * G_0``, the
-running mean of the discounted centred r_gc from an episode's first step. A learner with one episodic value head then
-sees the curiosity as PPO_GoCu's second head does, one stream running on across episodes: a longer episode is worth no
-more in itself (the centring), and ending one brings the curiosity of a fresh one (G_0), so that it is not paid to
-avoid the goal (``centred=False``: the paper's ``r_e + intrinsic_coef * r_gc``);
+``mode="sum"`` returns ``r_e + intrinsic_coef * (r_gc - mean r_gc)`` as the reward (for any SB3 algorithm): r_gc
+centred on its running mean over the recorded steps (``module.reward_centre``), so that a longer episode is worth no
+more in itself and a learner with one episodic value head is not paid to avoid the goal (``centred=False``: the
+paper's ``r_e + intrinsic_coef * r_gc``);
 ``mode="separate"`` leaves the reward extrinsic (for :class:`~sb3_gocu.PPO_GoCu`, which reads r_gc from
 ``infos``). Put the wrappers *above* ``Monitor`` (as ``make_vec_env`` does), so that the episode returns
 Monitor reports stay extrinsic.
@@ -87,18 +85,14 @@ class _RewardReport:
         self.centred = bool(centred)
         self._episode_sums: dict[int, float] = {}  # env -> normalised r_gc summed over its current episode
 
-    def _centring(self) -> tuple[float, float]:
-        """What the sum subtracts from this step's normalised r_gc (the running mean before the step) and adds to it
-        where an episode terminates (gamma x the mean centred return from an episode's start); (0, 0) uncentred."""
+    def _centre(self) -> float:
+        """What the sum subtracts from this step's normalised r_gc: the running mean before the step (0 uncentred)."""
         # getattr: a wrapper pickled by an older version has no flag and paid the uncentred sum
-        if self.mode != "sum" or not getattr(self, "centred", False):
-            return 0.0, 0.0
-        return self.module.reward_centre.mean, self.module.config.intrinsic_gamma * self.module.start_return.mean
+        return self.module.reward_centre.mean if self.mode == "sum" and getattr(self, "centred", False) else 0.0
 
     def _report(self, info: dict, extrinsic: float, raw: float, normalized: float, env: int = 0, centre: float = 0.0) -> float:
         """Write the three rewards into ``info`` (and the episode's curiosity sum into Monitor's ``info["episode"]``
-        at its end) and return the reward the algorithm sees (``centre`` is subtracted from r_gc in the sum: the running
-        mean, less the fresh episode's return where the episode terminates)."""
+        at its end) and return the reward the algorithm sees (``centre`` is subtracted from r_gc in the sum)."""
         info["extrinsic_reward"] = float(extrinsic)
         info["gocu_raw_reward"] = float(raw)
         info["gocu_reward"] = float(normalized)
@@ -115,12 +109,11 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
     :param venv: the vectorised environment (with ``Monitor`` below this wrapper)
     :param module: the curiosity module; default: a new one built from ``curiosity_kwargs`` and the
         env's observation space
-    :param mode: ``"sum"`` (reward = r_e + intrinsic_coef * (r_gc - its running mean), module docstring) or ``"separate"`` (reward = r_e)
+    :param mode: ``"sum"`` (reward = r_e + intrinsic_coef * (r_gc - its running mean)) or ``"separate"`` (reward = r_e)
     :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only, default 0.25 as
         PPO_GoCu's; given with ``mode="separate"`` it is an error)
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
-    :param centred: ``mode="sum"`` only: r_gc less its running mean, and a terminal step paid the curiosity return of a
-        fresh episode (False: the paper's uncentred sum)
+    :param centred: ``mode="sum"`` only: subtract r_gc's running mean in the sum (False: the paper's uncentred sum)
     """
 
     def __init__(
@@ -158,11 +151,9 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
                     reached = obs.copy()
                     for i in done_idx:
                         reached[i] = infos[i]["terminal_observation"]
-        mean, fresh = self._centring()
+        centre = self._centre()
         raw, normalized = self.module.step(reached, dones)
-        terminated = dones & ~np.array([bool(info.get("TimeLimit.truncated", False)) for info in infos])
-        rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i], i, mean - fresh * terminated[i]) for i, info in enumerate(infos)],
-                           dtype=np.float32)
+        rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i], i, centre) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
 
 
@@ -177,7 +168,7 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
     :param intrinsic_coef: sigma, weight of r_gc in the summed reward (``mode="sum"`` only, default 0.25 as
         PPO_GoCu's; given with ``mode="separate"`` it is an error)
     :param curiosity_kwargs: keywords of :class:`~sb3_gocu.GoalCuriosityModule` when ``module`` is None
-    :param centred: ``mode="sum"`` only: as for :class:`GoCuVecEnvWrapper`
+    :param centred: ``mode="sum"`` only: subtract r_gc's running mean in the sum, as for :class:`GoCuVecEnvWrapper`
     """
 
     def __init__(
@@ -209,9 +200,9 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         obs, reward, terminated, truncated, info = self.env.step(action)
         done = bool(terminated or truncated)
-        mean, fresh = self._centring()
+        centre = self._centre()
         raw, normalized = self.module.step(self._batch(obs), np.array([done]), self._index)
-        return obs, self._report(info, reward, raw[0], normalized[0], centre=mean - fresh * bool(terminated)), terminated, truncated, info
+        return obs, self._report(info, reward, raw[0], normalized[0], centre=centre), terminated, truncated, info
 
 
 def find_gocu_wrappers(env: VecEnv | gym.Env) -> list[GoCuVecEnvWrapper | GoCuWrapper]:

@@ -13,7 +13,6 @@ from sb3_gocu.curiosity import (
     IntrinsicReturnNormalizer,
     MasteryPredictor,
     RunningMean,
-    StartReturn,
     complexity_score,
     curiosity_reward,
     mastered_probability,
@@ -266,16 +265,3 @@ def test_running_mean_is_the_plain_mean_then_an_average_over_its_horizon():
     assert rm.count == 5
     with pytest.raises(ValueError, match="horizon"):
         RunningMean(0)
-
-
-def test_start_return_by_hand():
-    """The discounted return of each env's episode from its first step; a finished episode enters the mean, a restarted
-    one does not."""
-    sr = StartReturn(gamma=0.5, horizon=10)
-    sr.ensure_envs(2)
-    sr.update(np.array([1.0, 2.0]), np.array([0, 1]), np.array([False, False]))
-    sr.update(np.array([4.0]), np.array([0]), np.array([True]))  # env 0: 1 + 0.5 * 4 = 3, ended
-    assert sr.mean == 3.0 and sr.returns[0] == 0.0 and sr.discounts[0] == 1.0
-    sr.restart(np.array([1]))  # env 1 cut by a reset: its 2.0 is not counted
-    sr.update(np.array([8.0, -4.0]), np.array([0, 1]), np.array([True, True]))
-    assert sr.mean == pytest.approx((3.0 + 8.0 - 4.0) / 3)

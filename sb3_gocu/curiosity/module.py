@@ -36,7 +36,7 @@ from sb3_gocu.curiosity.goals import GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reachability import PREDICTOR_HOLDOUT, QUALITY_KEYS, QualityPairs, reachability_pairs
-from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, RunningMean, StartReturn, revisit_factor
+from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, RunningMean, revisit_factor
 from sb3_gocu.curiosity.scoring import Scorer, eq13_rows
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, observation_key
 from sb3_gocu.curiosity.training import (
@@ -50,8 +50,6 @@ RETIRED = ("train_in_background", "predictor_lead", "update_threads", "vae_shard
 #: recorded steps the running mean of the normalised r_gc spans (``GoalCuriosityModule.reward_centre``): eight PPO rollouts
 #: of 16 envs x 128 steps
 CENTRE_HORIZON = 16_384
-#: finished episodes the running mean of the centred return from an episode's start spans (``GoalCuriosityModule.start_return``)
-START_HORIZON = 256
 
 
 class GoalCuriosityModule:
@@ -101,9 +99,6 @@ class GoalCuriosityModule:
         #: running mean of the normalised r_gc over the recorded steps (about the last CENTRE_HORIZON): what the drop-in
         #: wrapper's sum subtracts, so that an episode is worth no more for being longer
         self.reward_centre = RunningMean(CENTRE_HORIZON)
-        #: running mean of the discounted centred r_gc from an episode's first step (recorded episodes): what the drop-in
-        #: wrapper's sum pays where an episode terminates, as a curiosity stream running on across episodes would
-        self.start_return = StartReturn(cfg.intrinsic_gamma, START_HORIZON)
         self.episodes, self.trajectories = self._new_env_stores()
         to_tensor = functools.partial(self.adapter.to_tensor, device=self.device)
         self.scorer = Scorer(self.episodes, cfg.embed_dim, to_tensor, (cfg.alpha, cfg.aggregation, cfg.reward_scale))
@@ -191,7 +186,6 @@ class GoalCuriosityModule:
             return
         self.trajectories.ensure_envs(n_envs)
         self.normalizer.ensure_envs(n_envs)
-        self.start_return.ensure_envs(n_envs)
         self.sample_goals(new)
 
     def register_env(self) -> int:
@@ -208,7 +202,6 @@ class GoalCuriosityModule:
         self.ensure_envs(int(env_indices.max()) + 1)
         for e in env_indices:
             self.episodes.restart(e, self.recording)
-        self.start_return.restart(env_indices)
         self.sample_goals(env_indices)
 
     @th.inference_mode()
@@ -284,7 +277,6 @@ class GoalCuriosityModule:
             rewards = rewards * revisit_factor(self.episodes.count_visits(keys, env_indices), self.config.revisit_decay)
         normalized = self.normalizer(rewards, env_indices, update=self.recording)
         if self.recording:
-            self.start_return.update(normalized - self.reward_centre.mean, env_indices, dones)
             self.reward_centre.update(normalized)
             self._reward_sums[0] += float(rewards.sum())
             self._reward_sums[1] += float((rewards.astype(np.float64) ** 2).sum())
@@ -454,7 +446,6 @@ class GoalCuriosityModule:
             "trajectories": self.trajectories.state_dict(),
             "normalizer": self.normalizer.state_dict(),
             "reward_centre": self.reward_centre.state_dict(),
-            "start_return": self.start_return.state_dict(),
             "rng": self.rng.bit_generator.state,
             "torch_rng": self.trainer.generator.get_state(),
             "envs": self.episodes.state_dict(),
@@ -494,10 +485,8 @@ class GoalCuriosityModule:
         self.goal_buffer.load_state_dict(state["goal_buffer"])
         self.memory.load_state_dict(state["memory"])
         self.normalizer.load_state_dict(state["normalizer"])
-        if "reward_centre" in state:  # a state saved before the centring starts its means afresh
+        if "reward_centre" in state:  # a state saved before the centring starts its mean afresh
             self.reward_centre.load_state_dict(state["reward_centre"])
-        if "start_return" in state:
-            self.start_return.load_state_dict(state["start_return"])
         if "rng" in state:
             self.rng.bit_generator.state = state["rng"]
         if "torch_rng" in state:

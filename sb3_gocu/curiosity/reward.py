@@ -1,7 +1,6 @@
 """The formulas of GoCu as plain tensor functions: the curiosity reward (eq 13), its normalisation by the
 running std of intrinsic returns (eq 14), the complexity score (eq 15) and the label probability (eq 16); and the
-running mean of the normalised reward that the drop-in wrapper's sum subtracts (:class:`RunningMean`) and the return a
-fresh episode brings, which it pays at an episode's end (:class:`StartReturn`).
+running mean of the normalised reward that the drop-in wrapper's sum subtracts (:class:`RunningMean`).
 """
 
 from __future__ import annotations
@@ -120,53 +119,6 @@ class RunningMean:
 
     def load_state_dict(self, state: dict) -> None:
         self.mean, self.count = float(state["mean"]), int(state["count"])
-
-
-class StartReturn:
-    """Running mean of the discounted return of a reward stream from the first step of an episode: what a fresh
-    episode is worth to a stream that runs on across episode ends (PPO_GoCu's second value head sees it at every
-    episode's start; a learner with one episodic value head never does, unless the end of an episode pays it).
-
-    :param gamma: discount of the returns
-    :param horizon: finished episodes the running mean spans (:class:`RunningMean`)
-    """
-
-    def __init__(self, gamma: float, horizon: int) -> None:
-        self.gamma = gamma
-        self.returns = np.zeros(0, dtype=np.float64)  # env -> discounted sum of its current episode's rewards so far
-        self.discounts = np.ones(0, dtype=np.float64)  # env -> gamma ** (steps of its current episode)
-        self.average = RunningMean(horizon)
-
-    @property
-    def mean(self) -> float:
-        return self.average.mean
-
-    def ensure_envs(self, n_envs: int) -> None:
-        if n_envs > len(self.returns):
-            self.returns = np.concatenate([self.returns, np.zeros(n_envs - len(self.returns))])
-            self.discounts = np.concatenate([self.discounts, np.ones(n_envs - len(self.discounts))])
-
-    def restart(self, env_indices: np.ndarray) -> None:
-        """Start the returns of ``env_indices`` afresh (an episode cut by a reset is not counted)."""
-        self.returns[env_indices] = 0.0
-        self.discounts[env_indices] = 1.0
-
-    def update(self, rewards: np.ndarray, env_indices: np.ndarray, dones: np.ndarray) -> None:
-        """Add one step's rewards of ``env_indices``; the episodes that ``dones`` ends enter the mean."""
-        self.returns[env_indices] += self.discounts[env_indices] * rewards
-        self.discounts[env_indices] *= self.gamma
-        ended = env_indices[dones]
-        if len(ended):
-            self.average.update(self.returns[ended])
-            self.restart(ended)
-
-    def state_dict(self) -> dict:
-        return {"returns": th.from_numpy(self.returns.copy()), "discounts": th.from_numpy(self.discounts.copy()), **self.average.state_dict()}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.returns = state["returns"].numpy().astype(np.float64)
-        self.discounts = state["discounts"].numpy().astype(np.float64)
-        self.average.load_state_dict(state)
 
 
 class IntrinsicReturnNormalizer:

@@ -13,7 +13,7 @@ The variants (each a ``benchmarks/sample_efficiency.py`` command; everything not
   only the revisit rule, the normalisation and the second value head remain;
 * ``vae_untrained``: the VAE never trained (``vae_epochs=0, vae_update_epochs=0``): a fixed random encoder;
 * ``revisit_none``: every visit pays r_gc (``revisit_decay="none"``, the paper's rule);
-* ``one_value_head``: plain PPO (one value head) on ``GoCuVecEnvWrapper(mode="sum")`` with ``GoCuCallback``.
+* ``one_value_head``: plain PPO (one value head) on ``GoCuVecEnvWrapper(mode="sum")`` (its default, centred sum) with ``GoCuCallback``.
 
 ``run`` executes the (variant, seed) runs, seed-major, ``--jobs`` at a time (one torch thread each), every run stopping once
 it reaches a mean return of 0.9 (``--stop-at-threshold``), each resumable from its checkpoints by running the same

@@ -83,6 +83,6 @@ def run_config(args: argparse.Namespace, algo: str, seed: int) -> dict[str, Any]
         cfg["intrinsic_coef"] = args.intrinsic_coef
         if args.constant_curiosity:
             cfg["constant_curiosity"] = True
-        if algo in SUM_ALGOS and getattr(args, "uncentred", False):
+        if algo in SUM_ALGOS and args.uncentred:
             cfg["uncentred"] = True
     return json.loads(json.dumps(cfg))

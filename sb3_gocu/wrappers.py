@@ -63,10 +63,12 @@ class _RewardReport:
         mode: str,
         intrinsic_coef: float | None,
         curiosity_kwargs: dict[str, Any] | None,
-        centred: bool,
+        centred: bool | None,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if centred is None:
+            centred = mode == "sum"
         if not isinstance(centred, (bool, np.bool_)):
             raise ValueError(f"centred must be True or False, got {centred!r}")
         if mode == "separate" and centred:
@@ -88,7 +90,8 @@ class _RewardReport:
     def _centre(self) -> float:
         """What the sum subtracts from this step's normalised r_gc: the running mean before the step (0 uncentred)."""
         # getattr: a wrapper pickled by an older version has no flag and paid the uncentred sum
-        return self.module.reward_centre.mean if self.mode == "sum" and getattr(self, "centred", False) else 0.0
+        # (centred is True in mode="sum" only: _setup_gocu refuses it with "separate")
+        return self.module.reward_centre.mean if getattr(self, "centred", False) else 0.0
 
     def _report(self, info: dict, extrinsic: float, raw: float, normalized: float, env: int = 0, centre: float = 0.0) -> float:
         """Write the three rewards into ``info`` (and the episode's curiosity sum into Monitor's ``info["episode"]``
@@ -126,7 +129,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         centred: bool | None = None,
     ) -> None:
         VecEnvWrapper.__init__(self, venv)
-        self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs, mode == "sum" if centred is None else centred)
+        self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs, centred)
         self.module.ensure_envs(self.num_envs)
 
     def reset(self) -> Any:
@@ -181,7 +184,7 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
         centred: bool | None = None,
     ) -> None:
         gym.Wrapper.__init__(self, env)
-        self._setup_gocu(env.observation_space, module, mode, intrinsic_coef, curiosity_kwargs, mode == "sum" if centred is None else centred)
+        self._setup_gocu(env.observation_space, module, mode, intrinsic_coef, curiosity_kwargs, centred)
         self.env_index = self.module.register_env()
         self._index = np.array([self.env_index])
 

@@ -55,27 +55,29 @@ def play(model: PPO, env: Any, episodes: int, sigma: float) -> list[dict[str, An
             ep["r_i"].append(sigma * info["gocu_reward"])
             ep["phase"].append(int(info.get("task_phase", -1)))
             if dones[i]:
-                done_eps.append({k: np.array(v) for k, v in ep.items()} | {"truncated": bool(info.get("TimeLimit.truncated"))})
+                phase = np.array(ep["phase"])
+                opened = int(np.argmax(phase >= DOOR)) + 1 if (phase >= DOOR).any() else None  # first step past the door
+                done_eps.append({k: np.array(v) for k, v in ep.items()} | {"truncated": bool(info.get("TimeLimit.truncated")), "opened": opened})
                 current[i] = {"r_e": [], "r_i": [], "phase": [], "value": []}
     return done_eps[:episodes]
 
 
 def summarise(eps: list[dict[str, Any]], gamma: float, max_steps: int, label: str) -> dict[str, float]:
-    door = [e for e in eps if (e["phase"] >= DOOR).any()]
+    door = [e for e in eps if e["opened"] is not None]
     goal = [e for e in eps if e["r_e"].sum() > 0]
-    after = [e["r_i"][int(np.argmax(e["phase"] >= DOOR)) + 1:] for e in door]
+    after = [e["r_i"][e["opened"]:] for e in door]
     post_rate = float(np.mean(np.concatenate(after))) if after and sum(map(len, after)) else float("nan")
     all_rate = float(np.mean(np.concatenate([e["r_i"] for e in eps])))
     forgone = [post_rate * (1 - gamma ** (max_steps - len(e["r_e"]))) / (1 - gamma) for e in goal]
     pre_goal_v = [e["value"][-1] for e in goal]  # V of the state the goal was stepped onto from
-    timeout_post_v = [e["value"][int(np.argmax(e["phase"] >= DOOR)) + 1:] for e in door if e["truncated"]]
+    timeout_post_v = [e["value"][e["opened"]:] for e in door if e["truncated"]]
     out = {
         "episodes": len(eps),
         "door_opened": len(door),
         "goal_reached": len(goal),
         "mean_length": float(np.mean([len(e["r_e"]) for e in eps])),
         "steps_door_to_end": float(np.mean([len(a) for a in after])) if after else float("nan"),
-        "steps_door_to_goal": float(np.mean([len(e["r_e"]) - int(np.argmax(e["phase"] >= DOOR)) - 1 for e in goal])) if goal else float("nan"),
+        "steps_door_to_goal": float(np.mean([len(e["r_e"]) - e["opened"] for e in goal])) if goal else float("nan"),
         "sigma_r_gc_per_step": all_rate,
         "sigma_r_gc_per_step_after_door": post_rate,
         "sigma_r_gc_sum_after_door": float(np.mean([a.sum() for a in after])) if after else float("nan"),

@@ -1,0 +1,96 @@
+"""What does a trained Atari agent do? Where it goes, how often it dies, which actions it takes, against a random policy.
+
+    python benchmarks/probes/atari_behaviour.py <out>/checkpoints/ppo_gocu_seed0/model_1000448.zip \\
+        --env ALE/MontezumaRevenge-v5 --steps 4000 --seed 100
+
+Plays ``--steps`` agent steps in one env built as the zoo's Atari entry builds it (``AtariWrapper``: 4 frames a step,
+a lost life ends the agent's episode; 4 stacked frames), with the model's stochastic policy and then with a uniformly
+random one (the same env seed), and prints for each: the distinct newest frames (what the module's first-visit
+rule tells apart: a frame seen again in an episode pays no r_gc), the distinct player positions (RAM bytes 42 and 43, x and y, in
+Montezuma's Revenge; other games: the distinct console RAM states, a coarse measure), the rooms (RAM byte 3 in
+Montezuma's Revenge), the lives lost, the game's episodes ended, the score, and the action histogram.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import ale_py
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3 import PPO
+from stable_baselines3.common.env_util import make_atari_env
+from stable_baselines3.common.vec_env import VecFrameStack, VecTransposeImage
+
+from sb3_gocu import PPO_GoCu
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # sample_efficiency (benchmarks/)
+from sample_efficiency import machine_line
+
+gym.register_envs(ale_py)  # the ALE/ ids
+
+
+def play(env_id: str, model: Any, steps: int, seed: int) -> dict[str, Any]:
+    """``steps`` agent steps of ``model`` (None: uniformly random actions) in one fresh env."""
+    venv = make_atari_env(env_id, n_envs=1, seed=seed, env_kwargs={"frameskip": 1, "repeat_action_probability": 0.0})
+    env = VecTransposeImage(VecFrameStack(venv, 4))  # make_atari_env wraps each env in Monitor and AtariWrapper
+    ale = env.venv.venv.envs[0].unwrapped.ale
+    montezuma = "Montezuma" in env_id
+    rng = np.random.default_rng(seed)
+    obs = env.reset()
+    places, rooms, frames, actions = set(), set(), set(), Counter()
+    lives_lost = games = 0
+    score = best = 0.0
+    lives = ale.lives()
+    for _ in range(steps):
+        action = model.predict(obs, deterministic=False)[0] if model is not None else np.array([rng.integers(env.action_space.n)])
+        actions[int(action[0])] += 1
+        obs, _, _, infos = env.step(action)
+        frames.add(obs[0, -1].tobytes())  # the newest frame, which GoCu's module sees
+        ram = ale.getRAM()
+        places.add((int(ram[3]), int(ram[42]), int(ram[43])) if montezuma else ram.tobytes())
+        if montezuma:
+            rooms.add(int(ram[3]))
+        lives_lost += ale.lives() < lives
+        lives = ale.lives()
+        if "episode" in infos[0]:  # Monitor: the end of a whole game
+            games += 1
+            best = max(best, float(infos[0]["episode"]["r"]))
+            score += float(infos[0]["episode"]["r"])
+    env.close()
+    return {"places": len(places), "frames": len(frames), "rooms": sorted(rooms), "lives_lost": lives_lost, "games": games,
+            "score": score, "best": best, "actions": actions}
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("model", type=Path, help="a PPO or PPO_GoCu model zip (a checkpoint of sample_efficiency.py)")
+    p.add_argument("--env", default="ALE/MontezumaRevenge-v5")
+    p.add_argument("--steps", type=int, default=4000, help="agent steps played by each policy")
+    p.add_argument("--seed", type=int, default=100)
+    args = p.parse_args(argv)
+    if args.steps < 1:
+        p.error(f"--steps must be >= 1, got {args.steps}")
+    th.set_num_threads(1)
+    cls = PPO_GoCu if "ppo_gocu" in args.model.as_posix() else PPO
+    model = cls.load(args.model, device="cpu")
+    print("command: python " + " ".join([Path(sys.argv[0]).as_posix(), f"<checkpoints>/{args.model.parent.name}/{args.model.name}", *sys.argv[2:]]))
+    print(f"machine: {machine_line(1)}; {cls.__name__} at {model.num_timesteps} steps")
+    out = {}
+    for name, policy in (("agent", model), ("random", None)):
+        r = play(args.env, policy, args.steps, args.seed)
+        out[name] = r
+        hist = " ".join(f"{a}:{n}" for a, n in sorted(r["actions"].items()))
+        print(f"{name:>6}: {r['places']} distinct places, {r['frames']} distinct frames, rooms {r['rooms']}, {r['lives_lost']} lives lost, {r['games']} games ended "
+              f"(score {r['score']:g}, best {r['best']:g}) in {args.steps} steps; actions {hist}", flush=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -12,12 +12,16 @@ checkpoint, on up to ``--frames`` distinct frames of its memory bank (the frames
 * ``one point``: the module's own rollback test (``Trainer.embeds_to_one_point``) on those frames;
 * goals: how many the buffer holds, how many distinct embeddings they have, and their median pairwise distance.
 
+``--init-seeds N`` adds, on the first checkpoint's frames, the same figures for N freshly initialised VAEs of the same
+shape (PyTorch's initialisation, torch seeds 0 to N-1): the encoder before its pretraining.
+
 Reads checkpoints only (no env, no training).
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import re
 import sys
 from collections.abc import Sequence
@@ -32,6 +36,25 @@ from sb3_gocu.curiosity.stores import distinct_rows
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # sample_efficiency (benchmarks/)
 from sample_efficiency import machine_line
+
+
+def fresh_units(model_path: Path, n_frames: int, seed: int, torch_seeds: int) -> list[tuple[int, float]]:
+    """(alive units, spread) of freshly initialised copies of the checkpoint's VAE on its memory bank's frames."""
+    mod = PPO_GoCu.load(model_path, device="cpu").curiosity
+    assert mod is not None, f"{model_path} carries no curiosity module"
+    bank = mod.memory.observations[: mod.memory.size]
+    x = mod.adapter.to_tensor(bank[np.random.default_rng(seed).permutation(distinct_rows(bank)[0])[:n_frames]], mod.device)
+    out = []
+    for s in range(torch_seeds):
+        th.manual_seed(s)
+        vae = copy.deepcopy(mod.vae)
+        for layer in vae.modules():
+            if hasattr(layer, "reset_parameters"):
+                layer.reset_parameters()
+        with th.no_grad():
+            phi = vae.eval().embed(x)
+        out.append((int((phi > 0).any(0).sum()), float(phi.std(0).mean())))
+    return out
 
 
 def measure(model_path: Path, n_frames: int, seed: int) -> dict[str, Any]:
@@ -58,7 +81,10 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     p.add_argument("checkpoints", type=Path, help="a run's checkpoint folder (model_<steps>.zip files)")
     p.add_argument("--frames", type=int, default=2048, help="distinct memory-bank frames measured per checkpoint")
     p.add_argument("--seed", type=int, default=0, help="which frames are drawn")
+    p.add_argument("--init-seeds", type=int, default=0, help="also measure this many freshly initialised VAEs")
     args = p.parse_args(argv)
+    if args.init_seeds < 0:
+        p.error(f"--init-seeds must be >= 0, got {args.init_seeds}")
     if args.frames < 2:
         p.error(f"--frames must be >= 2, got {args.frames}")
     paths = sorted(args.checkpoints.glob("model_*.zip"), key=lambda q: int(re.findall(r"\d+", q.stem)[0]))
@@ -75,6 +101,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         alive = f"{r['alive']}/{r['units']}"
         print(f"{r['steps']:>8} {r['last_update']:>11} {r['frames']:>6} {alive:>8} {r['spread']:>8.4f} "
               f"{r['one_point']!s:>9} {r['goals']:>5} {r['goal_embeddings']:>8} {r['goal_median_dist']:>11.3f}", flush=True)
+    for s, (alive, spread) in enumerate(fresh_units(paths[0], args.frames, args.seed, args.init_seeds)):
+        print(f"freshly initialised (torch seed {s}), the first checkpoint's frames: alive {alive}/{rows[0]['units']}, spread {spread:.4g}")
     return rows
 
 

@@ -6,7 +6,8 @@
 Plays ``--steps`` agent steps in one env built as the zoo's Atari entry builds it (``AtariWrapper``: 4 frames a step,
 a lost life ends the agent's episode; 4 stacked frames), with the model's stochastic policy and then with a uniformly
 random one (the same env seed), and prints for each: the distinct newest frames (what the module's first-visit
-rule tells apart: a frame seen again in an episode pays no r_gc), the distinct player positions (RAM bytes 42 and 43, x and y, in
+rule tells apart: a frame seen again in an episode pays no r_gc), the distinct cells (Go-Explore's coarse key: the
+newest frame averaged down to 11x8 pixels, 8 grey levels), the distinct player positions (RAM bytes 42 and 43, x and y, in
 Montezuma's Revenge; other games: the distinct console RAM states, a coarse measure), the rooms (RAM byte 3 in
 Montezuma's Revenge), the lives lost, the game's episodes ended, the score, and the action histogram.
 """
@@ -21,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import ale_py
+import cv2
 import gymnasium as gym
 import numpy as np
 import torch as th
@@ -44,7 +46,7 @@ def play(env_id: str, model: Any, steps: int, seed: int) -> dict[str, Any]:
     montezuma = "Montezuma" in env_id
     rng = np.random.default_rng(seed)
     obs = env.reset()
-    places, rooms, frames, actions = set(), set(), set(), Counter()
+    places, rooms, frames, cells, actions = set(), set(), set(), set(), Counter()
     lives_lost = games = 0
     score = best = 0.0
     lives = ale.lives()
@@ -53,6 +55,7 @@ def play(env_id: str, model: Any, steps: int, seed: int) -> dict[str, Any]:
         actions[int(action[0])] += 1
         obs, _, _, infos = env.step(action)
         frames.add(obs[0, -1].tobytes())  # the newest frame, which GoCu's module sees
+        cells.add((cv2.resize(obs[0, -1], (11, 8), interpolation=cv2.INTER_AREA) // 32).tobytes())
         ram = ale.getRAM()
         places.add((int(ram[3]), int(ram[42]), int(ram[43])) if montezuma else ram.tobytes())
         if montezuma:
@@ -64,7 +67,7 @@ def play(env_id: str, model: Any, steps: int, seed: int) -> dict[str, Any]:
             best = max(best, float(infos[0]["episode"]["r"]))
             score += float(infos[0]["episode"]["r"])
     env.close()
-    return {"places": len(places), "frames": len(frames), "rooms": sorted(rooms), "lives_lost": lives_lost, "games": games,
+    return {"places": len(places), "frames": len(frames), "cells": len(cells), "rooms": sorted(rooms), "lives_lost": lives_lost, "games": games,
             "score": score, "best": best, "actions": actions}
 
 
@@ -87,7 +90,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         r = play(args.env, policy, args.steps, args.seed)
         out[name] = r
         hist = " ".join(f"{a}:{n}" for a, n in sorted(r["actions"].items()))
-        print(f"{name:>6}: {r['places']} distinct places, {r['frames']} distinct frames, rooms {r['rooms']}, {r['lives_lost']} lives lost, {r['games']} games ended "
+        print(f"{name:>6}: {r['places']} distinct places, {r['frames']} distinct frames, {r['cells']} cells, rooms {r['rooms']}, {r['lives_lost']} lives lost, {r['games']} games ended "
               f"(score {r['score']:g}, best {r['best']:g}) in {args.steps} steps; actions {hist}", flush=True)
     return out
 

@@ -696,3 +696,50 @@ def test_atari_runs_take_the_zoo_settings_and_count_rooms(se, tmp_path):
     assert "rooms visited" in summary and "best episode return" in summary
     with pytest.raises(SystemExit):  # --zoo builds the zoo files' algorithms only
         se.main([*args, "--algos", "a2c"])
+
+
+def test_encoder_alive_probe_tells_a_live_encoder_from_a_dead_one(two_runs, tmp_path):
+    """The dead-encoder check of benchmarks/probes/encoder_alive.py: a trained checkpoint's encoder has live units and
+    distinct goal embeddings; the same checkpoint with every embedding unit's bias pushed far below zero has none."""
+    probe = load_script("encoder_alive", "benchmarks/probes/encoder_alive.py")
+    out, _ = two_runs
+    ckpts = out / "checkpoints" / "ppo_gocu_seed0"
+    rows = probe.main([str(ckpts), "--frames", "256"])
+    assert [r["steps"] for r in rows] == [1024, 2048]
+    for r in rows:
+        assert 0 < r["alive"] <= r["units"] and r["spread"] > 0 and not r["one_point"]
+        assert 1 < r["goal_embeddings"] <= r["goals"]
+    model = PPO_GoCu.load(ckpts / "model_2048.zip", device="cpu")
+    with th.no_grad():
+        model.curiosity.vae.fc.bias.fill_(-1e6)  # every unit of phi negative before its ReLU: a dead encoder
+    (tmp_path / "dead").mkdir()
+    model.save(tmp_path / "dead" / "model_2048.zip")
+    dead = probe.main([str(tmp_path / "dead"), "--frames", "256"])[0]
+    assert dead["alive"] == 0 and dead["spread"] == 0.0 and dead["one_point"] and dead["goal_embeddings"] == 1
+    fresh = probe.fresh_units(ckpts / "model_1024.zip", 256, 0, 2)  # freshly initialised VAEs are alive
+    assert len(fresh) == 2 and all(alive > 0 for alive, _ in fresh) and fresh[0] != fresh[1]
+
+
+def test_atari_behaviour_probe_plays_the_agent_and_a_random_policy(tmp_path):
+    """benchmarks/probes/atari_behaviour.py on an untrained PPO for Montezuma's Revenge: both policies play the steps
+    asked, in the first room, with at most one new frame, cell and place a step; the random policy replays the same."""
+    ale_py = pytest.importorskip("ale_py")
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_atari_env
+    from stable_baselines3.common.vec_env import VecFrameStack, VecTransposeImage
+
+    gym.register_envs(ale_py)
+    env = VecTransposeImage(VecFrameStack(make_atari_env("ALE/MontezumaRevenge-v5", n_envs=1, seed=0), 4))
+    path = tmp_path / "ppo_seed0" / "model_0.zip"
+    path.parent.mkdir()
+    PPO("CnnPolicy", env, n_steps=64, seed=0).save(path)
+    probe = load_script("atari_behaviour", "benchmarks/probes/atari_behaviour.py")
+    result = probe.main([str(path), "--steps", "64", "--seed", "3"])
+    for name in ("agent", "random"):
+        r = result[name]
+        assert sum(r["actions"].values()) == 64 and r["rooms"] == [1]
+        assert 1 <= r["cells"] <= r["frames"] <= 64 and 1 <= r["places"] <= 64
+    assert len(result["random"]["actions"]) > 1
+    again = probe.main([str(path), "--steps", "64", "--seed", "3"])
+    assert again["random"] == result["random"]  # seeded: the same random play

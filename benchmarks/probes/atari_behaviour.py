@@ -80,19 +80,23 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = p.parse_args(argv)
     if args.steps < 1:
         p.error(f"--steps must be >= 1, got {args.steps}")
+    threads = th.get_num_threads()
     th.set_num_threads(1)
-    cls = PPO_GoCu if "ppo_gocu" in args.model.as_posix() else PPO
-    model = cls.load(args.model, device="cpu")
-    print("command: python " + " ".join([Path(sys.argv[0]).as_posix(), f"<checkpoints>/{args.model.parent.name}/{args.model.name}", *sys.argv[2:]]))
-    print(f"machine: {machine_line(1)}; {cls.__name__} at {model.num_timesteps} steps")
-    out = {}
-    for name, policy in (("agent", model), ("random", None)):
-        r = play(args.env, policy, args.steps, args.seed)
-        out[name] = r
-        hist = " ".join(f"{a}:{n}" for a, n in sorted(r["actions"].items()))
-        print(f"{name:>6}: {r['places']} distinct places, {r['frames']} distinct frames, {r['cells']} cells, rooms {r['rooms']}, {r['lives_lost']} lives lost, {r['games']} games ended "
-              f"(score {r['score']:g}, best {r['best']:g}) in {args.steps} steps; actions {hist}", flush=True)
-    return out
+    try:
+        cls = PPO_GoCu if "ppo_gocu" in args.model.as_posix() else PPO
+        model = cls.load(args.model, device="cpu")
+        print("command: python " + " ".join([Path(sys.argv[0]).as_posix(), f"<checkpoints>/{args.model.parent.name}/{args.model.name}", *sys.argv[2:]]))
+        print(f"machine: {machine_line(1)}; {cls.__name__} at {model.num_timesteps} steps")
+        out = {}
+        for name, policy in (("agent", model), ("random", None)):
+            r = play(args.env, policy, args.steps, args.seed)
+            out[name] = r
+            hist = " ".join(f"{a}:{n}" for a, n in sorted(r["actions"].items()))
+            print(f"{name:>6}: {r['places']} distinct places, {r['frames']} distinct frames, {r['cells']} cells, rooms {r['rooms']}, {r['lives_lost']} lives lost, {r['games']} games ended "
+                  f"(score {r['score']:g}, best {r['best']:g}) in {args.steps} steps; actions {hist}", flush=True)
+        return out
+    finally:
+        th.set_num_threads(threads)  # restored for a caller in the same process
 
 
 if __name__ == "__main__":

@@ -90,20 +90,24 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     paths = sorted(args.checkpoints.glob("model_*.zip"), key=lambda q: int(re.findall(r"\d+", q.stem)[0]))
     if not paths:
         p.error(f"no model_<steps>.zip in {args.checkpoints}")
+    threads = th.get_num_threads()
     th.set_num_threads(1)
-    print("command: python " + " ".join([Path(sys.argv[0]).as_posix(), "<checkpoints>", *sys.argv[2:]]))
-    print(f"machine: {machine_line(1)}")
-    print(f"{'steps':>8} {'last update':>11} {'frames':>6} {'alive':>8} {'spread':>8} {'one point':>9} {'goals':>5} {'distinct':>8} {'median dist':>11}")
-    rows = []
-    for path in paths:
-        r = measure(path, args.frames, args.seed)
-        rows.append(r)
-        alive = f"{r['alive']}/{r['units']}"
-        print(f"{r['steps']:>8} {r['last_update']:>11} {r['frames']:>6} {alive:>8} {r['spread']:>8.4f} "
-              f"{r['one_point']!s:>9} {r['goals']:>5} {r['goal_embeddings']:>8} {r['goal_median_dist']:>11.3f}", flush=True)
-    for s, (alive, spread) in enumerate(fresh_units(paths[0], args.frames, args.seed, args.init_seeds)):
-        print(f"freshly initialised (torch seed {s}), the first checkpoint's frames: alive {alive}/{rows[0]['units']}, spread {spread:.4g}")
-    return rows
+    try:
+        print("command: python " + " ".join([Path(sys.argv[0]).as_posix(), "<checkpoints>", *sys.argv[2:]]))
+        print(f"machine: {machine_line(1)}")
+        print(f"{'steps':>8} {'last update':>11} {'frames':>6} {'alive':>8} {'spread':>8} {'one point':>9} {'goals':>5} {'distinct':>8} {'median dist':>11}")
+        rows = []
+        for path in paths:
+            r = measure(path, args.frames, args.seed)
+            rows.append(r)
+            alive = f"{r['alive']}/{r['units']}"
+            print(f"{r['steps']:>8} {r['last_update']:>11} {r['frames']:>6} {alive:>8} {r['spread']:>8.4f} "
+                  f"{r['one_point']!s:>9} {r['goals']:>5} {r['goal_embeddings']:>8} {r['goal_median_dist']:>11.3f}", flush=True)
+        for s, (alive, spread) in enumerate(fresh_units(paths[0], args.frames, args.seed, args.init_seeds)):
+            print(f"freshly initialised (torch seed {s}), the first checkpoint's frames: alive {alive}/{rows[0]['units']}, spread {spread:.4g}")
+        return rows
+    finally:
+        th.set_num_threads(threads)  # restored for a caller in the same process
 
 
 if __name__ == "__main__":

@@ -239,10 +239,13 @@ def main(argv: Sequence[str] | None = None) -> pathlib.Path:
     p.add_argument("--metric", default="mean_return", help="CSV column on the y axis (mean_return, success_rate, intrinsic_mean, ...)")
     p.add_argument("--band", choices=["minmax", "std"], default="minmax")
     p.add_argument("--title", default=None)
+    p.add_argument("--threshold", default="0.9", type=lambda v: None if v.lower() == "none" else float(v),
+                   help="dotted line at this return (the success threshold of the DoorKey runs; 'none': no line, as on Atari)")
     p.add_argument("--per-seed", action="store_true", help="also draw each seed's curve; mean and band only where every seed ran")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="only these seeds (default: all)")
     args = p.parse_args(argv)
-    path = plot(args.directory, args.out, args.metric, args.band, args.title, per_seed=args.per_seed, seeds=args.seeds)
+    path = plot(args.directory, args.out, args.metric, args.band, args.title, args.threshold, per_seed=args.per_seed,
+                seeds=args.seeds)
     print(f"wrote {path}")
     return path
 

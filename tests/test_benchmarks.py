@@ -112,6 +112,18 @@ def test_plot(plot_curves, two_runs, tmp_path):
     assert png2.stat().st_size > 1000
 
 
+def test_plot_threshold_line_only_when_asked(plot_curves, two_runs, tmp_path, monkeypatch):
+    import matplotlib.axes
+
+    lines = []
+    monkeypatch.setattr(matplotlib.axes.Axes, "axhline", lambda ax, y=0, *a, **k: lines.append(y))
+    out, _ = two_runs
+    plot_curves.main([str(out), "--out", str(tmp_path / "a.png")])
+    assert lines == [0.9]  # the DoorKey success threshold, by default
+    plot_curves.main([str(out), "--out", str(tmp_path / "b.png"), "--threshold", "none"])  # Atari: no threshold
+    assert lines == [0.9]
+
+
 def test_spread_labels_by_hand(plot_curves):
     """Overlapping labels are stacked one height apart around their anchors' mean, inside the axes; labels apart
     in x, or in y by at least a height, stay where they are."""

@@ -25,12 +25,12 @@ import ale_py
 import cv2
 import gymnasium as gym
 import numpy as np
-import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_atari_env
 from stable_baselines3.common.vec_env import VecFrameStack, VecTransposeImage
 
 from sb3_gocu import PPO_GoCu
+from sb3_gocu.curiosity.training import torch_threads
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # sample_efficiency (benchmarks/)
 from sample_efficiency import machine_line
@@ -80,9 +80,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = p.parse_args(argv)
     if args.steps < 1:
         p.error(f"--steps must be >= 1, got {args.steps}")
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    try:
+    with torch_threads(1):  # the caller's count comes back on return
         cls = PPO_GoCu if "ppo_gocu" in args.model.as_posix() else PPO
         model = cls.load(args.model, device="cpu")
         print("command: python " + " ".join([Path(sys.argv[0]).as_posix(), f"<checkpoints>/{args.model.parent.name}/{args.model.name}", *sys.argv[2:]]))
@@ -95,8 +93,6 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             print(f"{name:>6}: {r['places']} distinct places, {r['frames']} distinct frames, {r['cells']} cells, rooms {r['rooms']}, {r['lives_lost']} lives lost, {r['games']} games ended "
                   f"(score {r['score']:g}, best {r['best']:g}) in {args.steps} steps; actions {hist}", flush=True)
         return out
-    finally:
-        th.set_num_threads(threads)  # restored for a caller in the same process
 
 
 if __name__ == "__main__":

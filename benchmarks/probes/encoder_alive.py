@@ -33,6 +33,7 @@ import torch as th
 
 from sb3_gocu import PPO_GoCu
 from sb3_gocu.curiosity.stores import distinct_rows
+from sb3_gocu.curiosity.training import torch_threads
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # sample_efficiency (benchmarks/)
 from sample_efficiency import machine_line
@@ -90,9 +91,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     paths = sorted(args.checkpoints.glob("model_*.zip"), key=lambda q: int(re.findall(r"\d+", q.stem)[0]))
     if not paths:
         p.error(f"no model_<steps>.zip in {args.checkpoints}")
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    try:
+    with torch_threads(1):  # the caller's count comes back on return
         print("command: python " + " ".join([Path(sys.argv[0]).as_posix(), "<checkpoints>", *sys.argv[2:]]))
         print(f"machine: {machine_line(1)}")
         print(f"{'steps':>8} {'last update':>11} {'frames':>6} {'alive':>8} {'spread':>8} {'one point':>9} {'goals':>5} {'distinct':>8} {'median dist':>11}")
@@ -106,8 +105,6 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         for s, (alive, spread) in enumerate(fresh_units(paths[0], args.frames, args.seed, args.init_seeds)):
             print(f"freshly initialised (torch seed {s}), the first checkpoint's frames: alive {alive}/{rows[0]['units']}, spread {spread:.4g}")
         return rows
-    finally:
-        th.set_num_threads(threads)  # restored for a caller in the same process
 
 
 if __name__ == "__main__":

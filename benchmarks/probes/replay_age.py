@@ -28,6 +28,7 @@ import torch as th
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
 from sb3_gocu import GoalCuriosityModule
+from sb3_gocu.curiosity.training import torch_threads
 
 
 def load_module(ckpt_dir: Path, steps: int) -> GoalCuriosityModule:
@@ -62,9 +63,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     older = next((s for s in reversed(saved) if newer is not None and s < newer), None) if args.older is None else args.older
     if newer is None or older is None or older not in saved or newer not in saved or older >= newer:
         parser.error(f"need two curiosity checkpoints, older before newer, in {args.ckpt_dir}; saved: {saved}")
-    threads = th.get_num_threads()
-    th.set_num_threads(args.threads)
-    try:
+    with torch_threads(args.threads):
         old, new = load_module(args.ckpt_dir, older), load_module(args.ckpt_dir, newer)
         memory = new.memory
         pick = np.random.default_rng(args.seed).permutation(memory.size)[: args.states]
@@ -76,8 +75,6 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         for name, module in (("older", old), ("newer", new)):
             raw = module.score_states(states, env_indices=envs)
             scored[name] = module.normalizer(raw, envs, update=False)
-    finally:
-        th.set_num_threads(threads)
     a, b = scored["older"].astype(np.float64), scored["newer"].astype(np.float64)
     result = {
         "older": older, "newer": newer, "states": len(states),

@@ -43,7 +43,7 @@ first rollout end past each multiple of a PPO rollout's steps, ``--n-envs`` x ``
   goal buffer; empty for PPO; for ppo_rnd the intrinsic columns are RND's raw and normalised reward;
 * ``predictor_auc_far`` / ``predictor_auc_goals``: the held-out AUCs of the last predictor update (near goals against
   far ones of the same episode / against goals of the buffer; ``GoalCuriosityModule.pop_reward_stats``);
-* ``wall_time_s``: training wall time of the run so far (summed over resumed sessions; the time between
+* ``wall_time_s``: training wall time of the run so far (summed over the resumed parts; the time between
   the last checkpoint and a crash is not counted, those steps are redone); ``fps``: steps/s of that rollout (PPO: its
   collection, the update excluded; A2C and DQN: the steps since the previous row, their updates included).
 
@@ -254,14 +254,14 @@ class Run:
         self.exploration = ExplorationCallback(window=args.window)
         self.episodes = 0
         self.wall_before = 0.0
-        self.session_start = time.perf_counter()
+        self.process_start = time.perf_counter()
         self.last_checkpoint = 0
         self.resumed_from: list[int] = []
         self.commands: list[str] = [command]
         self.done = False
-        #: with --stop-at-threshold: the rollout end where the run reached the threshold (this session)
+        #: with --stop-at-threshold: the rollout end where the run reached the threshold (in this process)
         self.reached_at: int | None = None
-        #: the step at which this session stopped the run by --stop-at-threshold (written into its checkpoint; a
+        #: the step at which this process stopped the run by --stop-at-threshold (written into its checkpoint; a
         #: resumption decides from the rows, so it does not read it back)
         self.stopped_at_threshold: int | None = None
 
@@ -275,7 +275,7 @@ class Run:
         self.episodes += 1
 
     def wall_time(self) -> float:
-        return self.wall_before + time.perf_counter() - self.session_start
+        return self.wall_before + time.perf_counter() - self.process_start
 
     def add_row(
         self, steps: int, intrinsic_mean: float, intrinsic_std: float, intrinsic_norm: float, fps: float, goals: float = float("nan"),
@@ -486,7 +486,7 @@ class Run:
             model = self.build()
             remaining, reset = self.args.timesteps, True
             print(f"[{self.name}] new run: {self.args.env}, {self.args.timesteps} steps", flush=True)
-        self.session_start = time.perf_counter()
+        self.process_start = time.perf_counter()
         if self.args.constant_curiosity:
             replace_curiosity(self.module(model), "constant")
         model.learn(remaining, callback=self.callbacks(), reset_num_timesteps=reset)

@@ -131,7 +131,8 @@ class GoCuCallback(BaseCallback):
                 f"GoCu: pretrained the VAE on {bank_size} random-policy observations "
                 f"({stats.get('vae_observations', 0):.0f} {'distinct' if self.module.config.vae_dedupe else 'trained on'}) "
                 f"in {self.pretrain_time:.1f} s; "
-                f"{self.module.goal_buffer.size} goals"
+                f"{self.module.goal_buffer.size} goals; revisit cell {self.module.revisit_key.describe()} (first-visit share "
+                f"{stats.get('revisit_share', float('nan')):.3f} on those episodes)"
             )
 
     def _on_step(self) -> bool:

@@ -36,6 +36,7 @@ from sb3_gocu.curiosity.goals import GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reachability import PREDICTOR_HOLDOUT, QUALITY_KEYS, QualityPairs, reachability_pairs
+from sb3_gocu.curiosity.revisits import Calibration, cell_from_state, default_cell
 from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, RunningMean, revisit_factor
 from sb3_gocu.curiosity.scoring import Scorer, eq13_rows
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, observation_key
@@ -100,6 +101,10 @@ class GoalCuriosityModule:
         #: wrapper's sum subtracts, so that an episode is worth no more for being longer
         self.reward_centre = RunningMean(CENTRE_HORIZON)
         self.episodes, self.trajectories = self._new_env_stores()
+        #: what counts as a revisit (``revisit_decay``): the cell of a state (:mod:`~sb3_gocu.curiosity.revisits`),
+        #: chosen by :meth:`pretrain` from the random-policy episodes; Go-Explore's cell until then
+        self.revisit_key = self._default_cell()
+        self._calibration = Calibration(cfg.pretrain_steps)
         to_tensor = functools.partial(self.adapter.to_tensor, device=self.device)
         self.scorer = Scorer(self.episodes, cfg.embed_dim, to_tensor, (cfg.alpha, cfg.aggregation, cfg.reward_scale))
 
@@ -112,6 +117,7 @@ class GoalCuriosityModule:
         self.last_predictor_update = 0
         self.stats: dict[str, float] = {}
         self._reward_sums = [0.0, 0.0, 0]  # sum, sum of squares, count of the raw r_gc recorded since pop_reward_stats
+        self._first_visits = [0, 0]  # recorded steps in a cell new to their episode, and recorded steps, since pop_reward_stats
         self._hits_at_pop = (0, 0)  # the scorer's (hits, lookups) at the last pop_reward_stats
         self.time_inference = 0.0  # cumulative seconds in the module's scoring calls
         self._inference_at_pop = 0.0  # time_inference at the last pop_reward_stats
@@ -119,6 +125,10 @@ class GoalCuriosityModule:
         self.time_predictor = 0.0
         self._folded = self.predictor.fold()
         self._encoder = self._frozen_encoder()
+
+    def _default_cell(self) -> Any:
+        box = self.adapter.box
+        return default_cell(self.adapter.layout, self.adapter.scale, self.adapter.raw_shape, box.low, box.high)
 
     def _new_env_stores(self) -> tuple[Episodes, TrajectoryStore]:
         """Empty per-env stores, grown by :meth:`ensure_envs`: the episodes in progress and the training-pair store."""
@@ -266,6 +276,8 @@ class GoalCuriosityModule:
         if self.recording:
             self.trajectories.add(th.from_numpy(phi), self.episodes.ids[env_indices], env_indices)
             self.memory.add(raw, self.rng)
+            if not self.pretrained:
+                self._calibration.add(raw, self.episodes.ids[env_indices])
             for j, e in enumerate(env_indices):
                 self.episodes.states[e].append(raw[j].copy())
             self.n_recorded_steps += len(raw)
@@ -274,7 +286,11 @@ class GoalCuriosityModule:
             self.stats["nonfinite_rewards"] = self.stats.get("nonfinite_rewards", 0) + int((~np.isfinite(rewards)).sum())
             rewards = np.where(np.isfinite(rewards), rewards, 0.0).astype(np.float32)
         if self.config.revisit_decay != "none":
-            rewards = rewards * revisit_factor(self.episodes.count_visits(keys, env_indices), self.config.revisit_decay)
+            visits = self.episodes.count_visits(self.revisit_key(raw), env_indices)
+            rewards = rewards * revisit_factor(visits, self.config.revisit_decay)
+            if self.recording:
+                self._first_visits[0] += int((visits == 1).sum())
+                self._first_visits[1] += len(visits)
         normalized = self.normalizer(rewards, env_indices, update=self.recording)
         if self.recording:
             self.reward_centre.update(normalized)
@@ -389,8 +405,14 @@ class GoalCuriosityModule:
 
     def pretrain(self) -> dict[str, float]:
         """Train the VAE on what the memory bank holds (the random-policy observations) for all ``vae_epochs``
-        epochs, and mark the module pretrained."""
+        epochs, choose the revisit cell from the random-policy episodes recorded (:func:`~sb3_gocu.curiosity.revisits.choose_cell`),
+        and mark the module pretrained."""
         out = self.train_vae(epochs=self.config.vae_epochs, patience=0)
+        self.revisit_key, chosen = self._calibration.choose(self.adapter.layout, self.adapter.scale, self.adapter.raw_shape)
+        out.update(chosen)
+        self.stats.update(chosen)
+        for visits in self.episodes.visits:  # counted with the cell before
+            visits.clear()
         self.pretrained = True
         self.last_predictor_update = self.n_recorded_steps  # P_m counts from the first rollout
         return out
@@ -428,6 +450,9 @@ class GoalCuriosityModule:
             out["reward_mean"] = mean
             out["reward_std"] = math.sqrt(max(0.0, squares / count - mean**2))
         self._reward_sums = [0.0, 0.0, 0]
+        if self._first_visits[1]:
+            out["first_visit_share"] = self._first_visits[0] / self._first_visits[1]
+        self._first_visits = [0, 0]
         return out
 
     # ------------------------------------------------------------------ persistence
@@ -452,6 +477,7 @@ class GoalCuriosityModule:
             "phi_cache": memo_to_state(self.scorer.phi_memo),
             # the loss the VAE trains with goes with the VAE, so a resumed run keeps it (see load_state_dict)
             "settings": {"vae_pixel_weighting": self.vae_pixel_weighting},
+            "revisit_key": self.revisit_key.state_dict(),
             "counters": {"pretrained": self.pretrained, "n_recorded_steps": self.n_recorded_steps,
                          "last_vae_update": self.last_vae_update, "last_predictor_update": self.last_predictor_update},
         }
@@ -496,6 +522,9 @@ class GoalCuriosityModule:
             self.vae_pixel_weighting = float(settings["vae_pixel_weighting"])
         elif not self._pixel_weighting_given:
             self.vae_pixel_weighting = 0.0  # saved before the weighting existed: the VAE trained without it
+        # a state saved before the cell key: Go-Explore's cell (it had counted visits by the observation's bytes)
+        self.revisit_key = (cell_from_state(state["revisit_key"], self.adapter.layout, self.adapter.scale, self.adapter.raw_shape)
+                            if "revisit_key" in state else self._default_cell())
         c = state["counters"]
         self.pretrained = bool(c["pretrained"])
         self.n_recorded_steps = int(c["n_recorded_steps"])

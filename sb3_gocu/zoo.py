@@ -63,22 +63,24 @@ HYPERPARAMS_ENV_VAR = "SB3_GOCU_HYPERPARAMS"
 DEFAULT_CONF_ALGOS = ("ppo_gocu", "ppo", "a2c", "dqn")
 
 #: names of the GoCu parameters in a trial (each maps to a keyword of GoalCuriosityModule, or to
-#: PPO_GoCu's ``intrinsic_coef``). Symbols of the paper: K, sigma, delta, lambda, a, b, l.
+#: PPO_GoCu's ``intrinsic_coef``), each acting on the rewards under the defaults (tests/test_zoo.py). Symbols of the
+#: paper: K, sigma, l, d_max.
 GOCU_TRIAL_PARAMS = (
     "n_goals",  # K
     "intrinsic_coef",  # sigma (eq 10)
-    "reward_scale",  # delta (eq 13)
-    "prior_weight",  # lambda (eq 15)
-    "label_threshold",  # a (eq 16)
-    "label_slope",  # b (eq 16)
     "new_goals_per_episode",  # l
     "goal_strategy",
     "revisit_decay",  # what a revisit within an episode pays
+    "max_distance",  # d_max: a far pair of the reachability labels is at least this many steps apart
 )
+#: GoCu parameters earlier versions sampled, which no longer are: lambda, a and b act only with ``pair_labels="eq16"``,
+#: and delta (``reward_scale``) divides r_gc before eq 14 divides it by the std of its returns, which cancels it. A
+#: stored trial that holds them still converts to the settings it ran with.
+EARLIER_GOCU_TRIAL_PARAMS = ("reward_scale", "prior_weight", "label_threshold", "label_slope")
 #: GoCu parameters sampled only when the configured policy takes images (a ``Cnn`` policy): the module refuses
 #: ``vae_pixel_weighting > 0`` with vector observations
 GOCU_IMAGE_TRIAL_PARAMS = ("vae_pixel_weighting",)
-_ALL_GOCU_TRIAL_PARAMS = GOCU_TRIAL_PARAMS + GOCU_IMAGE_TRIAL_PARAMS
+_ALL_GOCU_TRIAL_PARAMS = GOCU_TRIAL_PARAMS + GOCU_IMAGE_TRIAL_PARAMS + EARLIER_GOCU_TRIAL_PARAMS
 #: policy_kwargs keys that no zoo sampler samples and that must survive tuning
 _EXTRACTOR_KEYS = ("features_extractor_class", "features_extractor_kwargs", "normalize_images", "share_features_extractor")
 
@@ -88,9 +90,8 @@ def sample_gocu_trial_params(trial: optuna.Trial, images: bool = False) -> dict[
     """Raw GoCu parameters of a trial (names of :data:`GOCU_TRIAL_PARAMS`, and with ``images`` those of
     :data:`GOCU_IMAGE_TRIAL_PARAMS`).
 
-    Ranges around the paper's values (K=50, sigma=0.25, delta=10, lambda=3, a=15, b=0.8, l=7, proportional):
-    the paper reports lambda > 10 too sticky and lambda <= 2 overfitting, 10 < a < 30 good, b > 0.7 important.
-    ``vae_pixel_weighting`` (not in the paper; the default 0.5 for images) spans its whole range [0, 1].
+    Ranges around the paper's values (K=50, sigma=0.25, l=7, proportional) and the defaults (first-visit revisits,
+    d_max=30). ``vae_pixel_weighting`` (not in the paper; the default 0.5 for images) spans its whole range [0, 1].
 
     :param trial: the Optuna trial
     :param images: whether the observations are images (only then is ``vae_pixel_weighting`` sampled)
@@ -98,13 +99,10 @@ def sample_gocu_trial_params(trial: optuna.Trial, images: bool = False) -> dict[
     params: dict[str, Any] = {
         "n_goals": trial.suggest_categorical("n_goals", [10, 25, 50, 100]),
         "intrinsic_coef": trial.suggest_float("intrinsic_coef", 0.01, 1.0, log=True),
-        "reward_scale": trial.suggest_categorical("reward_scale", [1.0, 5.0, 10.0, 20.0]),
-        "prior_weight": trial.suggest_float("prior_weight", 0.5, 10.0, log=True),
-        "label_threshold": trial.suggest_float("label_threshold", 5.0, 40.0),
-        "label_slope": trial.suggest_float("label_slope", 0.2, 2.0, log=True),
         "new_goals_per_episode": trial.suggest_int("new_goals_per_episode", 1, 15),
         "goal_strategy": trial.suggest_categorical("goal_strategy", list(GOAL_STRATEGIES)),
         "revisit_decay": trial.suggest_categorical("revisit_decay", list(REVISIT_DECAYS)),
+        "max_distance": trial.suggest_categorical("max_distance", [10, 20, 30, 50]),
     }
     if images:
         params["vae_pixel_weighting"] = trial.suggest_float("vae_pixel_weighting", 0.0, 1.0)
@@ -114,9 +112,8 @@ def sample_gocu_trial_params(trial: optuna.Trial, images: bool = False) -> dict[
 def convert_gocu_trial_params(params: dict[str, Any], base: dict[str, Any] | None = None) -> dict[str, Any]:
     """GoCu trial parameters -> ``intrinsic_coef`` and ``curiosity_kwargs`` (merged over ``base``'s).
 
-    ``n_goals`` is capped at the configured ``goal_buffer_size``; when the config does not fix ``max_distance``
-    (d_max) it follows a as ``ceil(2 a / beta)`` (d_max must reach past a / beta so both
-    label classes occur; the default 30 is 2a for a = 15).
+    ``n_goals`` is capped at the configured ``goal_buffer_size``; a stored trial of an earlier version that sampled
+    a (``label_threshold``) and no d_max gets d_max = ``ceil(2 a / beta)``, as it ran with, unless the config fixes it.
     """
     base = base or {}
     curiosity = dict(_as_dict(base.get("curiosity_kwargs")))
@@ -125,7 +122,7 @@ def convert_gocu_trial_params(params: dict[str, Any], base: dict[str, Any] | Non
     if "goal_buffer_size" in curiosity and "n_goals" in curiosity:
         curiosity["n_goals"] = min(int(curiosity["n_goals"]), int(curiosity["goal_buffer_size"]))
     configured = _as_dict(base.get("curiosity_kwargs"))
-    if "label_threshold" in sampled and "max_distance" not in configured:
+    if "label_threshold" in sampled and "max_distance" not in sampled and "max_distance" not in configured:
         beta = float(curiosity.get("distance_weight", 1.0)) or 1.0
         curiosity["max_distance"] = max(1, math.ceil(2 * float(curiosity["label_threshold"]) / beta))
     out: dict[str, Any] = {"curiosity_kwargs": curiosity}
@@ -136,7 +133,7 @@ def convert_gocu_trial_params(params: dict[str, Any], base: dict[str, Any] | Non
 
 def sample_ppo_gocu_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
     """Optuna sampler of ``ppo_gocu``: rl-zoo3's PPO sampler (``rl_zoo3.hyperparams_opt.sample_ppo_params``)
-    for the PPO parameters, plus K, sigma, delta, lambda, a, b, l, the goal strategy, ``revisit_decay`` and, when
+    for the PPO parameters, plus K, sigma, l, the goal strategy, ``revisit_decay``, d_max and, when
     the configured policy is a ``Cnn`` one, ``vae_pixel_weighting`` (:func:`sample_gocu_trial_params`).
     Configured ``curiosity_kwargs`` and ``policy_kwargs`` keys that are not sampled are kept (see the module
     docstring). The trial's user attribute ``worker`` is ``"host:pid"`` of the

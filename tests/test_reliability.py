@@ -30,7 +30,7 @@ from sb3_gocu.checkpoints import (
     list_checkpoints,
     remove_stale_temporaries,
 )
-from sb3_gocu.curiosity import episodes, scoring
+from sb3_gocu.curiosity import checks, episodes, scoring
 from sb3_gocu.curiosity.config import VAE_HOLDOUT
 from sb3_gocu.curiosity.networks import FoldedPredictor, MasteryPredictor
 from sb3_gocu.curiosity.stores import observation_key
@@ -153,6 +153,38 @@ def test_module_refuses_invalid_settings(kwargs, match):
     # the same error at PPO_GoCu's construction, not at the first step
     with pytest.raises(ValueError, match=match):
         PPO_GoCu("MlpPolicy", chain_venv(1), curiosity_kwargs={**SMALL_CURIOSITY, **kwargs})
+
+
+#: 32x32 RGB frames: 3,072 bytes each
+FRAMES = spaces.Box(0, 255, (32, 32, 3), np.uint8)
+
+
+@pytest.mark.parametrize(
+    "kwargs, store",
+    [
+        (dict(memory_size=10**9), "memory bank"),
+        (dict(goal_buffer_size=10**9), "goal buffer"),
+        (dict(predictor_train_freq=10**12), "trajectory store"),
+        (dict(pretrain_steps=10**9), "pretraining's episodes"),
+    ],
+)
+def test_a_setting_that_would_exhaust_memory_is_refused_before_allocating(kwargs, store, monkeypatch):
+    """Refused with the setting's name, the bytes the stores would need and the memory available, before numpy tries."""
+    monkeypatch.setattr(checks, "available_memory", lambda: 8 * 10**9)
+    (name, value), = kwargs.items()
+    with pytest.raises(ValueError, match=rf"^{name}={value}: the curiosity module's stores would need [0-9.]+ GB \({store}: [0-9.]+ GB\), "
+                                         rf"more than the 8\.00 GB of memory available; lower {name}$"):
+        GoalCuriosityModule(FRAMES, **kwargs)
+
+
+def test_goals_for_more_envs_than_memory_holds_are_refused_with_n_goals(monkeypatch):
+    """Each env's episode keeps its K goals' frames: K x n_envs frames, checked as the envs arrive."""
+    monkeypatch.setattr(checks, "available_memory", lambda: 8 * 10**8)
+    module = GoalCuriosityModule(FRAMES, n_goals=10**4, goal_buffer_size=10**4)  # 0.03 GB of goal buffer: fits
+    module.ensure_envs(16)  # 16 x 10^4 frames: 0.49 GB, fits
+    with pytest.raises(ValueError, match=r"^n_goals=10000 with 32 envs: .* \(goals of the episodes: 0\.98 GB\), more than the 0\.80 GB"):
+        module.ensure_envs(32)
+    assert module.n_envs == 16
 
 
 @pytest.mark.parametrize(

@@ -271,7 +271,6 @@ def test_sampler_merges_into_the_configured_settings():
             if key != "intrinsic_coef":
                 assert key in curiosity, key
         assert curiosity["n_goals"] <= 20, "K is capped at the configured goal buffer"
-        assert curiosity["max_distance"] >= 2 * curiosity["label_threshold"] / 2.0
         assert 0.01 <= params["intrinsic_coef"] <= 1.0
         assert params["policy_kwargs"]["features_extractor_class"] is PaperCNN and "net_arch" in params["policy_kwargs"]
         assert {"learning_rate", "n_steps", "batch_size", "gamma"} <= params.keys()
@@ -465,3 +464,56 @@ def test_plot_train_draws_the_training_curve(gocu_run):
     assert len(monitor) >= 8, "DoorKey-5x5 episodes end within 250 steps: 2048 steps give at least 8"
     np.testing.assert_allclose(lines[run_dir.name]["x"], np.cumsum(monitor.l.values))
     np.testing.assert_allclose(lines[run_dir.name]["y"], monitor.r.values)
+
+
+#: two values of each GoCu setting the ppo_gocu sampler draws for the curiosity module, from its ranges
+SAMPLED_PAIRS = {
+    "n_goals": (4, 10),
+    "new_goals_per_episode": (1, 15),
+    "goal_strategy": ("random", "late"),
+    "revisit_decay": ("none", "first_visit"),
+    "max_distance": (10, 30),
+    "vae_pixel_weighting": (0.0, 1.0),
+}
+
+
+def normalised_rewards(**settings) -> np.ndarray:
+    """The normalised r_gc (what the learner is paid) of a fixed batch of observations, after a fixed history of
+    recorded episodes (two envs, each a random walk of 100 steps among 64 places), the pretraining
+    after 200 steps and an update round after 400 more (goals from the finished episodes, a predictor update)."""
+    from gymnasium import spaces
+
+    from sb3_gocu.curiosity import GoalCuriosityModule
+
+    from conftest import SMALL_CURIOSITY
+
+    base = {**SMALL_CURIOSITY, "goal_buffer_size": 64, "n_goals": 4, "predictor_train_freq": 400, "max_distance": 20}
+    module = GoalCuriosityModule(spaces.Box(0, 255, (16, 16, 3), np.uint8), seed=0, **{**base, **settings})
+    frames = np.zeros((64, 16, 16, 3), dtype=np.uint8)  # a bright 2x2 square at each of 8x8 places
+    for place in range(64):
+        y, x = divmod(place, 8)
+        frames[place, 2 * y : 2 * y + 2, 2 * x : 2 * x + 2] = 255
+    rng = np.random.default_rng(0)
+    places = np.zeros(2, dtype=np.int64)
+    module.recording = True
+    for t in range(600):  # each env walks among the places, back to the corner at each new episode
+        y, x = np.divmod(places, 8)
+        step = rng.integers(4, size=2)
+        places = np.clip(y + (step == 0) - (step == 1), 0, 7) * 8 + np.clip(x + (step == 2) - (step == 3), 0, 7)
+        done = t % 100 == 99
+        module.step(frames[places], np.full(2, done))
+        places = places * (not done)
+        if t == 199:
+            module.pretrain()
+    module.maybe_train()
+    module.begin_episodes(np.arange(2))
+    return np.concatenate([module.step(frames[[t, 63 - t]], np.zeros(2, bool))[1] for t in range(40)])
+
+
+def test_every_sampled_curiosity_setting_acts_on_the_rewards():
+    """A setting the search draws must change what the learner is paid; delta (reward_scale), which eq 14's
+    normalisation cancels, is the check's teeth: it changes the config and not the normalised rewards."""
+    assert set(SAMPLED_PAIRS) == (set(GOCU_TRIAL_PARAMS) - {"intrinsic_coef"}) | set(GOCU_IMAGE_TRIAL_PARAMS)
+    for name, (a, b) in SAMPLED_PAIRS.items():
+        assert not np.allclose(normalised_rewards(**{name: a}), normalised_rewards(**{name: b}), rtol=1e-5, atol=0), name
+    assert np.allclose(normalised_rewards(reward_scale=1.0), normalised_rewards(reward_scale=20.0), rtol=1e-5, atol=0)

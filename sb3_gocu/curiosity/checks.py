@@ -8,6 +8,7 @@ Stable-Baselines3 import.
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import numpy as np
@@ -42,3 +43,35 @@ def check_intrinsic_coef(value: Any) -> float:
     """``value`` as sigma, the weight of the curiosity reward or advantage; a ``ValueError`` unless a finite number >= 0."""
     check(is_number(value) and math.isfinite(value) and value >= 0, f"intrinsic_coef (sigma) must be a finite number >= 0, got {value!r}")
     return float(value)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available now: psutil's ``virtual_memory().available`` (as SB3's replay buffers read it), else the
+    available pages the OS reports; None where neither can tell."""
+    try:
+        import psutil
+
+        return int(psutil.virtual_memory().available)
+    except ImportError:
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_memory(stores: dict[str, tuple[str, int]], available: int | None = None) -> None:
+    """Refuse settings whose stores would not fit in the memory available, before they are allocated.
+
+    :param stores: for each store, the setting that sizes it (as ``"name=value"``) and the bytes it would take
+    :param available: bytes available (default: :func:`available_memory`; no check where it cannot tell)
+    :raises ValueError: naming the setting of the largest store, the bytes all the stores would need and the memory
+        available
+    """
+    available = available_memory() if available is None else available
+    total = sum(size for _, size in stores.values())
+    if available is None or total <= available:
+        return
+    store, (setting, size) = max(stores.items(), key=lambda item: item[1][1])
+    raise ValueError(f"{setting}: the curiosity module's stores would need {total / 1e9:.2f} GB ({store}: {size / 1e9:.2f} GB), "
+                     f"more than the {available / 1e9:.2f} GB of memory available; lower {setting.split('=')[0]}")

@@ -28,7 +28,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
-from sb3_gocu.curiosity.checks import check
+from sb3_gocu.curiosity.checks import check, check_memory
 from sb3_gocu.curiosity.config import DEFAULT_PIXEL_WEIGHTING, NEAR_DISTANCE, CuriosityConfig
 from sb3_gocu.curiosity import persistence
 from sb3_gocu.curiosity.episodes import Episodes, memo_from_state, memo_to_state
@@ -94,6 +94,13 @@ class GoalCuriosityModule:
         self.predictor.eval()
 
         raw_shape, raw_dtype = self.adapter.raw_shape, self.adapter.raw_dtype
+        self._raw_bytes = int(np.prod(raw_shape)) * np.dtype(raw_dtype).itemsize
+        check_memory({
+            "memory bank": (f"memory_size={cfg.memory_size}", cfg.memory_size * self._raw_bytes),
+            "goal buffer": (f"goal_buffer_size={cfg.goal_buffer_size}", cfg.goal_buffer_size * (self._raw_bytes + 4 * cfg.embed_dim + 16)),
+            "trajectory store": (f"predictor_train_freq={cfg.predictor_train_freq}", cfg.predictor_train_freq * (4 * cfg.embed_dim + 8)),
+            "pretraining's episodes": (f"pretrain_steps={cfg.pretrain_steps}", cfg.pretrain_steps * (self._raw_bytes + 8)),
+        })
         self.goal_buffer = GoalBuffer(cfg.goal_buffer_size, raw_shape, raw_dtype, cfg.embed_dim, cfg.goal_novelty)
         self.memory = MemoryBank(cfg.memory_size, raw_shape, raw_dtype)
         self.normalizer = IntrinsicReturnNormalizer(cfg.intrinsic_gamma)
@@ -191,9 +198,15 @@ class GoalCuriosityModule:
 
     def ensure_envs(self, n_envs: int) -> None:
         """Grow the per-env state to ``n_envs`` environments (new envs get goals at once)."""
-        new = self.episodes.grow(n_envs)
-        if len(new) == 0:
+        if n_envs <= self.n_envs:
             return
+        cfg = self.config
+        per_env = max(-(-cfg.predictor_train_freq // n_envs), 2 * cfg.max_distance)
+        check_memory({
+            "goals of the episodes": (f"n_goals={cfg.n_goals} with {n_envs} envs", n_envs * cfg.n_goals * self._raw_bytes),
+            "trajectory store": (f"predictor_train_freq={cfg.predictor_train_freq} with {n_envs} envs", n_envs * per_env * (4 * cfg.embed_dim + 8)),
+        })
+        new = self.episodes.grow(n_envs)
         self.trajectories.ensure_envs(n_envs)
         self.normalizer.ensure_envs(n_envs)
         self.sample_goals(new)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch as th
 from gymnasium import spaces
 
 from sb3_gocu.curiosity import GoalCuriosityModule

@@ -31,17 +31,17 @@ from gymnasium import spaces
 from sb3_gocu.curiosity.checks import check, check_memory
 from sb3_gocu.curiosity.config import DEFAULT_PIXEL_WEIGHTING, NEAR_DISTANCE, CuriosityConfig
 from sb3_gocu.curiosity import persistence
-from sb3_gocu.curiosity.episodes import Episodes, memo_from_state, memo_to_state
+from sb3_gocu.curiosity.episodes import Episodes
 from sb3_gocu.curiosity.goals import GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reachability import PREDICTOR_HOLDOUT, QUALITY_KEYS, QualityPairs, reachability_pairs
-from sb3_gocu.curiosity.revisits import Calibration, cell_from_state, default_cell
+from sb3_gocu.curiosity.revisits import Calibration, default_cell
 from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, RunningMean, revisit_factor
 from sb3_gocu.curiosity.scoring import Scorer, eq13_rows
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, observation_key
 from sb3_gocu.curiosity.training import (
-    PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update, nonfinite_entries,
+    PredictorFit, PredictorJob, Trainer, VaeFit, VaeJob, guard_update,
 )
 
 #: keywords of earlier versions: experiments removed, or speed-ups now fixed (docs/results.md, "What was retired")
@@ -470,31 +470,9 @@ class GoalCuriosityModule:
 
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict[str, Any]:
-        """Everything the module learned and remembers, as tensors and plain Python values (loadable with
-        ``torch.load(..., weights_only=True)``), each raw observation kept once (:func:`persistence.pack`), so that a
-        resumed run continues bit for bit (the memos included: recomputing a value in another batch can change its
-        last bits)."""
-        state = {
-            "vae": self.vae.state_dict(),
-            "vae_optimizer": self.trainer.vae_optimizer.state_dict(),
-            "predictor": self.predictor.state_dict(),
-            "predictor_optimizer": self.trainer.predictor_optimizer.state_dict(),
-            "goal_buffer": self.goal_buffer.state_dict(),
-            "memory": self.memory.state_dict(),
-            "trajectories": self.trajectories.state_dict(),
-            "normalizer": self.normalizer.state_dict(),
-            "reward_centre": self.reward_centre.state_dict(),
-            "rng": self.rng.bit_generator.state,
-            "torch_rng": self.trainer.generator.get_state(),
-            "envs": self.episodes.state_dict(),
-            "phi_cache": memo_to_state(self.scorer.phi_memo),
-            # the loss the VAE trains with goes with the VAE, so a resumed run keeps it (see load_state_dict)
-            "settings": {"vae_pixel_weighting": self.vae_pixel_weighting},
-            "revisit_key": self.revisit_key.state_dict(),
-            "counters": {"pretrained": self.pretrained, "n_recorded_steps": self.n_recorded_steps,
-                         "last_vae_update": self.last_vae_update, "last_predictor_update": self.last_predictor_update},
-        }
-        return persistence.pack(state, self.adapter.raw_shape)
+        """Everything the module learned and remembers (:func:`~sb3_gocu.curiosity.persistence.module_state`): tensors
+        and plain Python values, loadable with ``torch.load(..., weights_only=True)``, for a bit-exact resumption."""
+        return persistence.module_state(self)
 
     def load_state_dict(self, state: dict[str, Any], strict: bool = True) -> None:
         """Restore a :meth:`state_dict`; a ``ValueError`` for a state that is not one or holds non-finite weights.
@@ -502,61 +480,4 @@ class GoalCuriosityModule:
         :param state: what :meth:`state_dict` returned
         :param strict: as for ``torch.nn.Module.load_state_dict`` (accepted for SB3's ``set_parameters``)
         """
-        missing = {"vae", "predictor", "goal_buffer", "memory", "normalizer", "counters"} - set(state)
-        if missing:
-            raise ValueError(f"curiosity state is missing {sorted(missing)}: not a GoalCuriosityModule state_dict")
-        state = persistence.unpack(state)
-        for net in ("vae", "predictor"):
-            bad = nonfinite_entries(state[net])
-            if bad:
-                raise ValueError(f"curiosity state: the {net} holds non-finite values in {bad[:3]} (a corrupt file or a diverged run)")
-        self.vae.load_state_dict(state["vae"], strict=strict)
-        self.scorer.phi_memo.clear()
-        self.predictor.load_state_dict(state["predictor"], strict=strict)
-        for name, optimizer in (("vae_optimizer", self.trainer.vae_optimizer), ("predictor_optimizer", self.trainer.predictor_optimizer)):
-            if name in state:
-                optimizer.load_state_dict(state[name])
-                for group in optimizer.param_groups:  # a state saved before foreach was on keeps the multi-tensor step
-                    group["foreach"] = True
-        self.vae.eval()
-        self._encoder = self._frozen_encoder()
-        self.predictor.eval()
-        self.goal_buffer.load_state_dict(state["goal_buffer"])
-        self.memory.load_state_dict(state["memory"])
-        self.normalizer.load_state_dict(state["normalizer"])
-        if "reward_centre" in state:  # a state saved before the centring starts its mean afresh
-            self.reward_centre.load_state_dict(state["reward_centre"])
-        if "rng" in state:
-            self.rng.bit_generator.state = state["rng"]
-        if "torch_rng" in state:
-            self.trainer.generator.set_state(state["torch_rng"])
-        settings = state.get("settings", {})
-        if "vae_pixel_weighting" in settings:
-            self.vae_pixel_weighting = float(settings["vae_pixel_weighting"])
-        elif not self._pixel_weighting_given:
-            self.vae_pixel_weighting = 0.0  # saved before the weighting existed: the VAE trained without it
-        # a state saved before the cell key: Go-Explore's cell (it had counted visits by the observation's bytes)
-        self.revisit_key = (cell_from_state(state["revisit_key"], self.adapter.layout, self.adapter.scale, self.adapter.raw_shape)
-                            if "revisit_key" in state else self._default_cell())
-        c = state["counters"]
-        self.pretrained = bool(c["pretrained"])
-        self.n_recorded_steps = int(c["n_recorded_steps"])
-        self.last_vae_update = int(c["last_vae_update"])
-        self.last_predictor_update = int(c["last_predictor_update"])
-        self._folded = self.predictor.fold()
-        envs = state.get("envs")
-        if envs is not None:
-            n = int(envs["episode_ids"].shape[0])
-            self.episodes, self.trajectories = self._new_env_stores()
-            self.scorer.episodes = self.episodes
-            self.normalizer.returns = self.normalizer.returns[:0]
-            rng_state = self.rng.bit_generator.state
-            self.ensure_envs(n)  # allocates; the goals it draws are overwritten below
-            self.rng.bit_generator.state = rng_state
-            self.normalizer.load_state_dict(state["normalizer"])
-            self.episodes.load_state_dict(envs)
-            self.trajectories.load_state_dict(state["trajectories"])
-            self._refresh_active_goals()
-            self.episodes.load_memos(envs)
-        if "phi_cache" in state:
-            self.scorer.phi_memo.update(memo_from_state(state["phi_cache"]))
+        persistence.load_module_state(self, state, strict)

@@ -44,7 +44,6 @@ from sb3_gocu.buffers import GoCuDictRolloutBuffer, GoCuRolloutBuffer
 from sb3_gocu.callbacks import GoCuCallback
 from sb3_gocu.checkpoints import GlobalRNGState, check_model_file, read_env_state, save_model, without_members
 from sb3_gocu.curiosity import CuriosityConfig, GoalCuriosityModule
-from sb3_gocu.curiosity.training import torch_threads
 from sb3_gocu.curiosity.checks import DEFAULT_INTRINSIC_COEF, check_intrinsic_coef, is_flag
 from sb3_gocu.policies import GoCuActorCriticCnnPolicy, GoCuActorCriticPolicy, GoCuMultiInputActorCriticPolicy
 from sb3_gocu.wrappers import GoCuVecEnvWrapper, find_gocu_module, find_gocu_wrappers
@@ -355,21 +354,19 @@ class PPO_GoCu(PPO):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfPPOGoCu:
-        """SB3's ``learn``, with one torch thread on a CPU device: more threads were no faster on these small networks
-        and oversubscribed the cores of runs side by side (docs/results.md, "Threads"). The caller's thread count is
-        restored when it returns."""
+        """SB3's ``learn``, at the caller's torch thread count, as SB3 trains (for runs side by side, give each
+        ``torch.set_num_threads(1)``: docs/results.md, "Threads")."""
         if self._acting_only:
             raise ValueError("this model was loaded with curiosity=False, to act: load it with curiosity=True to train it")
-        with torch_threads(1 if self.device.type == "cpu" else None):
-            if reset_num_timesteps:
-                self.global_rng.pending = None
-            else:
-                self.global_rng.restore()  # a loaded model continues with the random numbers of the saved run
-            return super().learn(
-                total_timesteps=total_timesteps,
-                callback=callback,
-                log_interval=log_interval,
-                tb_log_name=tb_log_name,
-                reset_num_timesteps=reset_num_timesteps,
-                progress_bar=progress_bar,
-            )
+        if reset_num_timesteps:
+            self.global_rng.pending = None
+        else:
+            self.global_rng.restore()  # a loaded model continues with the random numbers of the saved run
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )

@@ -755,3 +755,20 @@ def test_atari_behaviour_probe_plays_the_agent_and_a_random_policy(tmp_path):
     assert len(result["random"]["actions"]) > 1
     again = probe.main([str(path), "--steps", "64", "--seed", "3"])
     assert again["random"] == result["random"]  # seeded: the same random play
+
+
+def test_revisit_share_probe_measures_each_key_on_both_policies(two_runs):
+    """benchmarks/probes/revisit_share.py on DoorKey-5x5: the cell is chosen from the calibration episodes; a cell is
+    a function of the bytes, so its first-visit share never exceeds the bytes'; the agent's rollouts are measured too."""
+    probe = load_script("revisit_share", "benchmarks/probes/revisit_share.py")
+    out, _ = two_runs
+    model = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
+    env = "GoCu/DoorKey-5x5-v0"
+    result = probe.main(["--envs", env, "--steps", "300", "--calibration-steps", "1200", "--seed", "3", "--model", f"{env}={model}"])[env]
+    assert result["cell"].endswith("grey levels") and 0 < result["calibration_share"] < 1 and result["key_ms"] > 0
+    for policy in ("random", "agent"):
+        shares = result[policy]
+        assert 0 < shares["go-explore 11x8x8"] <= shares["bytes"] <= 1 and 0 < shares["cell"] <= shares["bytes"]
+        assert shares["episodes"] >= 1
+    with pytest.raises(SystemExit):
+        probe.main(["--envs", env, "--model", f"GoCu/DoorKey-8x8-v0={model}"])  # a model of an env not probed

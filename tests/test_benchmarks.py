@@ -772,3 +772,29 @@ def test_revisit_share_probe_measures_each_key_on_both_policies(two_runs):
         assert shares["episodes"] >= 1
     with pytest.raises(SystemExit):
         probe.main(["--envs", env, "--model", f"GoCu/DoorKey-8x8-v0={model}"])  # a model of an env not probed
+
+
+def test_atari_behaviour_probe_reports_what_a_ppo_gocu_agents_curiosity_pays(tmp_path):
+    """With a PPO_GoCu model, the probe steps its curiosity module on both policies' steps: its revisit cells (at most
+    one new a step) and the raw r_gc of the steps where the player stood still and where it moved, which together are
+    every step but the first of each life."""
+    ale_py = pytest.importorskip("ale_py")
+    import gymnasium as gym
+    from stable_baselines3.common.env_util import make_atari_env
+    from stable_baselines3.common.vec_env import VecFrameStack, VecTransposeImage
+
+    from sb3_gocu import PPO_GoCu
+
+    gym.register_envs(ale_py)
+    env = VecTransposeImage(VecFrameStack(make_atari_env("ALE/MontezumaRevenge-v5", n_envs=1, seed=0), 4))
+    path = tmp_path / "ppo_gocu_seed0" / "model_0.zip"
+    path.parent.mkdir()
+    PPO_GoCu("CnnPolicy", env, n_steps=64, seed=0, curiosity_kwargs={**TINY_IMAGE_CURIOSITY, "image_channels": 1}).save(path)
+    probe = load_script("atari_behaviour", "benchmarks/probes/atari_behaviour.py")
+    result = probe.main([str(path), "--steps", "64", "--seed", "3"])
+    for name in ("agent", "random"):
+        r = result[name]
+        assert 1 <= r["module_cells"] <= 64
+        (still, n_still), (moving, n_moving) = r["r_gc_still"], r["r_gc_moving"]
+        assert n_still + n_moving == 64 - 1 - r["lives_lost"]
+        assert all(0.0 <= value <= 0.1 + 1e-6 for value, n in ((still, n_still), (moving, n_moving)) if n)  # [0, alpha / delta]

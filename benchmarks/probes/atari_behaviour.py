@@ -6,10 +6,12 @@
 Plays ``--steps`` agent steps in one env built as the zoo's Atari entry builds it (``AtariWrapper``: 4 frames a step,
 a lost life ends the agent's episode; 4 stacked frames), with the model's stochastic policy and then with a uniformly
 random one (the same env seed), and prints for each: the distinct newest frames (what the module's first-visit
-rule tells apart: a frame seen again in an episode pays no r_gc), the distinct cells (Go-Explore's coarse key: the
-newest frame averaged down to 11x8 pixels, 8 grey levels), the distinct player positions (RAM bytes 42 and 43, x and y, in
-Montezuma's Revenge; other games: the distinct console RAM states, a coarse measure), the rooms (RAM byte 3 in
-Montezuma's Revenge), the lives lost, the game's episodes ended, the score, and the action histogram.
+rule told apart before it keyed on cells), the distinct cells (Go-Explore's fixed key: the newest frame averaged down
+to 11x8 pixels, 8 grey levels), the distinct player positions (RAM bytes 42 and 43, x and y, in Montezuma's Revenge;
+other games: the distinct console RAM states, a coarse measure), the rooms (RAM byte 3 in Montezuma's Revenge), the
+lives lost, the game's episodes ended, the score, and the action histogram. For a PPO_GoCu model, also what its own
+curiosity module sees on both policies' steps: the distinct cells of its revisit key, and (Montezuma's Revenge) the
+mean raw r_gc it pays a step where the player stood still against a step where the player moved.
 """
 
 from __future__ import annotations
@@ -38,8 +40,9 @@ from sample_efficiency import machine_line
 gym.register_envs(ale_py)  # the ALE/ ids
 
 
-def play(env_id: str, model: Any, steps: int, seed: int) -> dict[str, Any]:
-    """``steps`` agent steps of ``model`` (None: uniformly random actions) in one fresh env."""
+def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) -> dict[str, Any]:
+    """``steps`` agent steps of ``model`` (None: uniformly random actions) in one fresh env; with ``curiosity`` (a
+    PPO_GoCu model's module), the raw r_gc it pays each step (first-visit rule included) and its revisit cells."""
     venv = make_atari_env(env_id, n_envs=1, seed=seed, env_kwargs={"frameskip": 1, "repeat_action_probability": 0.0})
     env = VecTransposeImage(VecFrameStack(venv, 4))  # make_atari_env wraps each env in Monitor and AtariWrapper
     ale = env.venv.venv.envs[0].unwrapped.ale
@@ -50,14 +53,27 @@ def play(env_id: str, model: Any, steps: int, seed: int) -> dict[str, Any]:
     lives_lost = games = 0
     score = best = 0.0
     lives = ale.lives()
+    paid: dict[str, list[float]] = {"still": [], "moving": []}  # raw r_gc of the steps where the player stood / moved
+    module_cells: set[bytes] = set()
+    previous = None
+    if curiosity is not None:
+        curiosity.begin_episodes(np.arange(1))
     for _ in range(steps):
         action = model.predict(obs, deterministic=False)[0] if model is not None else np.array([rng.integers(env.action_space.n)])
         actions[int(action[0])] += 1
-        obs, _, _, infos = env.step(action)
+        obs, _, dones, infos = env.step(action)
+        reached = infos[0]["terminal_observation"][None] if dones[0] else obs
         frames.add(obs[0, -1].tobytes())  # the newest frame, which GoCu's module sees
         cells.add((cv2.resize(obs[0, -1], (11, 8), interpolation=cv2.INTER_AREA) // 32).tobytes())
         ram = ale.getRAM()
-        places.add((int(ram[3]), int(ram[42]), int(ram[43])) if montezuma else ram.tobytes())
+        place = (int(ram[3]), int(ram[42]), int(ram[43])) if montezuma else ram.tobytes()
+        places.add(place)
+        if curiosity is not None:
+            r_gc = float(curiosity.step(reached, dones)[0][0])
+            module_cells.update(curiosity.revisit_key(curiosity.adapter.extract(reached)))
+            if montezuma and previous is not None:
+                paid["still" if place == previous else "moving"].append(r_gc)
+        previous = None if dones[0] else place
         if montezuma:
             rooms.add(int(ram[3]))
         lives_lost += ale.lives() < lives
@@ -67,8 +83,13 @@ def play(env_id: str, model: Any, steps: int, seed: int) -> dict[str, Any]:
             best = max(best, float(infos[0]["episode"]["r"]))
             score += float(infos[0]["episode"]["r"])
     env.close()
-    return {"places": len(places), "frames": len(frames), "cells": len(cells), "rooms": sorted(rooms), "lives_lost": lives_lost, "games": games,
-            "score": score, "best": best, "actions": actions}
+    out = {"places": len(places), "frames": len(frames), "cells": len(cells), "rooms": sorted(rooms), "lives_lost": lives_lost, "games": games,
+           "score": score, "best": best, "actions": actions}
+    if curiosity is not None:
+        out["module_cells"] = len(module_cells)
+        for how, rewards in paid.items():
+            out[f"r_gc_{how}"] = (float(np.mean(rewards)) if rewards else float("nan"), len(rewards))
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -86,12 +107,18 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         print("command: python " + " ".join([Path(sys.argv[0]).as_posix(), f"<checkpoints>/{args.model.parent.name}/{args.model.name}", *sys.argv[2:]]))
         print(f"machine: {machine_line(1)}; {cls.__name__} at {model.num_timesteps} steps")
         out = {}
+        curiosity = getattr(model, "curiosity", None)
         for name, policy in (("agent", model), ("random", None)):
-            r = play(args.env, policy, args.steps, args.seed)
+            r = play(args.env, policy, args.steps, args.seed, curiosity)
             out[name] = r
             hist = " ".join(f"{a}:{n}" for a, n in sorted(r["actions"].items()))
             print(f"{name:>6}: {r['places']} distinct places, {r['frames']} distinct frames, {r['cells']} cells, rooms {r['rooms']}, {r['lives_lost']} lives lost, {r['games']} games ended "
                   f"(score {r['score']:g}, best {r['best']:g}) in {args.steps} steps; actions {hist}", flush=True)
+            if curiosity is not None:
+                paid = "; ".join(f"raw r_gc {r[f'r_gc_{how}'][0]:.4f} a step over the {r[f'r_gc_{how}'][1]} steps the player {word}"
+                                 for how, word in (("still", "stood still"), ("moving", "moved")) if r[f"r_gc_{how}"][1])
+                print(f"{'':>8}the agent's curiosity: {r['module_cells']} revisit cells ({curiosity.revisit_key.describe()})"
+                      + (f"; {paid}" if paid else ""), flush=True)
         return out
 
 

@@ -10,9 +10,9 @@ from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.curiosity.revisits import (
     MIN_CALIBRATION_STEPS,
     TARGET_SHARE,
-    VECTOR_LEVELS,
+    SIMHASH_BITS,
     ImageCell,
-    VectorCell,
+    SimHashCell,
     cell_from_state,
     choose_cell,
     first_visit_share,
@@ -58,11 +58,18 @@ def test_an_image_cell_by_hand():
         ImageCell("hwc", 255.0, (3, 3), width=4, height=1, levels=4)
 
 
-def test_a_vector_cell_by_hand():
-    cell = VectorCell(np.array([0.0, -1.0, 5.0]), np.array([1.0, 1.0, 5.0]), levels=4)
-    x = np.array([[0.0, -1.0, 5.0], [0.3, 0.49, 7.0], [1.0, 2.0, 3.0], [-3.0, 0.0, 5.0]])
-    # entry 0: quarters of [0, 1]; entry 1: halves of [-1, 1] by quarters; entry 2: one value, always level 0
-    assert cell.cells(x).tolist() == [[0, 0, 0], [1, 2, 0], [3, 3, 0], [0, 2, 0]]
+def test_a_simhash_cell_by_hand():
+    """The sides of the hyperplanes a . z + b = 0, z the standardised vector; a 1-entry vector is cut by size too."""
+    cell = SimHashCell(np.array([1.0, 0.0]), np.array([2.0, 1.0]), bits=3)
+    a, b = cell._projection[:-1], cell._projection[-1]
+    x = np.array([[1.0, 0.0], [3.0, -1.0], [-5.0, 2.0]])
+    z = (x - [1.0, 0.0]) / [2.0, 1.0]
+    assert cell.cells(x).tolist() == np.packbits(z @ a + b > 0, axis=1).tolist()
+    assert cell.cells(x).shape == (3, 1)
+    line = np.linspace(-3, 3, 601)[:, None]
+    assert len(set(SimHashCell(np.zeros(1), np.ones(1), bits=8)(line))) > 2  # more than the two signs of x
+    with pytest.raises(ValueError, match=r"a SimHash cell needs 1\.\.64 bits, got 65"):
+        SimHashCell(np.zeros(1), np.ones(1), bits=65)
 
 
 def test_the_first_visit_share_by_hand():
@@ -103,10 +110,12 @@ def test_a_vector_walk_gets_a_cell_near_the_target():
     ids = np.arange(3000) // 300
     walk = np.concatenate([np.cumsum(s, axis=0) for s in np.split(steps, 10)])
     cell, stats = choose_cell(walk, ids, "vector", 1.0)
-    assert isinstance(cell, VectorCell) and 0.05 <= stats["revisit_share"] <= 0.25
-    distance = {levels: abs(np.log(first_visit_share(VectorCell(walk.min(axis=0), walk.max(axis=0), levels)(walk), ids) / TARGET_SHARE))
-                for levels in VECTOR_LEVELS}
-    assert cell.levels == min(distance, key=lambda levels: (distance[levels], -levels))
+    assert isinstance(cell, SimHashCell) and 0.05 <= stats["revisit_share"] <= 0.25
+    mean, std = walk.astype(np.float64).mean(axis=0), walk.astype(np.float64).std(axis=0)
+    distance = {bits: abs(np.log(first_visit_share(SimHashCell(mean, std, bits)(walk), ids) / TARGET_SHARE)) for bits in SIMHASH_BITS}
+    assert cell.bits == min(distance, key=lambda bits: (round(distance[bits], 6), -bits))
+    restored = cell_from_state(cell.state_dict(), "vector", 1.0, (2,))
+    assert restored(walk) == cell(walk)
 
 
 def test_the_module_chooses_its_cell_at_the_pretraining_saves_it_and_pays_standing_still_once():

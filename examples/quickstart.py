@@ -4,7 +4,7 @@
     python examples/quickstart.py --timesteps 50000 --eval-episodes 20
 
 Trains with SB3's progress bar, evaluates the success rate of the trained policy, and saves the model
-(curiosity state included) to ``gocu_doorkey5.zip``. ``learn()`` trains with one torch thread on a CPU (docs/results.md,
+(curiosity state included) to ``gocu_doorkey5.zip``. ``learn()`` trains at torch's thread count (docs/results.md,
 "Threads").
 """
 

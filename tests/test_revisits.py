@@ -132,6 +132,8 @@ def test_the_module_chooses_its_cell_at_the_pretraining_saves_it_and_pays_standi
     chosen = module.revisit_key
     assert (chosen.width, chosen.height, chosen.levels) != (11, 8, 8)
 
+    module.pretrain()  # a second pretraining keeps the cell
+    assert module.revisit_key == chosen
     loaded = GoalCuriosityModule(space, **{**SMALL_CURIOSITY, "pretrain_steps": 2000}, seed=1)
     loaded.load_state_dict(module.state_dict())
     assert loaded.revisit_key == chosen

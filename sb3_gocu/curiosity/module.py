@@ -421,11 +421,12 @@ class GoalCuriosityModule:
         epochs, choose the revisit cell from the random-policy episodes recorded (:func:`~sb3_gocu.curiosity.revisits.choose_cell`),
         and mark the module pretrained."""
         out = self.train_vae(epochs=self.config.vae_epochs, patience=0)
-        self.revisit_key, chosen = self._calibration.choose(self.adapter.layout, self.adapter.scale, self.adapter.raw_shape)
-        out.update(chosen)
-        self.stats.update(chosen)
-        for visits in self.episodes.visits:  # counted with the cell before
-            visits.clear()
+        if not self.pretrained:  # a second pretraining keeps the cell
+            self.revisit_key, chosen = self._calibration.choose(self.adapter.layout, self.adapter.scale, self.adapter.raw_shape)
+            out.update(chosen)
+            self.stats.update(chosen)
+            for visits in self.episodes.visits:  # counted with the cell before
+                visits.clear()
         self.pretrained = True
         self.last_predictor_update = self.n_recorded_steps  # P_m counts from the first rollout
         return out

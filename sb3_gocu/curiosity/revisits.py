@@ -89,7 +89,7 @@ class ImageCell:
 
     def cells(self, raw: np.ndarray) -> np.ndarray:
         """The cells of a raw batch, (n, height, width) uint8."""
-        small = self._rows @ self.grey(raw) @ self._cols
+        small = np.nan_to_num(self._rows @ self.grey(raw) @ self._cols)
         return np.clip(np.floor(small * self.levels), 0, self.levels - 1).astype(np.uint8)
 
     def __call__(self, raw: np.ndarray) -> list[bytes]:

@@ -102,6 +102,9 @@ def test_too_few_observations_keep_the_default_cell():
     cell, stats = choose_cell(frames, ids, "hwc", 255.0)
     assert (cell.width, cell.height, cell.levels) == (11, 8, 8)
     assert stats["revisit_calibration_steps"] == MIN_CALIBRATION_STEPS - 1
+    for raw, layout in ((np.zeros((0, 32, 32, 1), np.uint8), "hwc"), (np.zeros((0, 3)), "vector")):  # none at all
+        cell, stats = choose_cell(raw, np.zeros(0, np.int64), layout, 1.0)
+        assert cell(raw) == [] and stats["revisit_calibration_steps"] == 0
 
 
 def test_a_vector_walk_gets_a_cell_near_the_target():

@@ -126,7 +126,8 @@ class SimHashCell:
 
     def cells(self, raw: np.ndarray) -> np.ndarray:
         """The cells of a raw batch, (n, ceil(bits / 8)) uint8 (the sign bits, packed)."""
-        z = np.nan_to_num((np.asarray(raw, dtype=np.float64).reshape(len(raw), -1) - self.mean) / self.scale)
+        raw = np.asarray(raw, dtype=np.float64)
+        z = np.nan_to_num((raw.reshape(len(raw), int(np.prod(raw.shape[1:]))) - self.mean) / self.scale)
         return np.packbits(z @ self._projection[:-1] + self._projection[-1] > 0, axis=1)
 
     def __call__(self, raw: np.ndarray) -> list[bytes]:
@@ -207,7 +208,7 @@ def choose_cell(raw: np.ndarray, episode_ids: np.ndarray, layout: str, scale: fl
         return cell, {"revisit_share": first_visit_share(cell(raw), episode_ids), "revisit_calibration_steps": float(len(raw))}
     mean = std = None
     if layout == "vector":
-        flat = np.asarray(raw, dtype=np.float64).reshape(len(raw), -1)
+        flat = np.asarray(raw, dtype=np.float64).reshape(len(raw), int(np.prod(raw_shape)))
         mean, std = flat.mean(axis=0), flat.std(axis=0)
     best, best_rank, best_share = None, None, 0.0
     for fineness, cell in enumerate(candidates(layout, scale, raw_shape, mean, std)):

@@ -36,7 +36,7 @@ from sb3_gocu.curiosity.goals import GoalBuffer, select_goal_steps
 from sb3_gocu.curiosity.networks import ConvVAE, MasteryPredictor, MlpVAE
 from sb3_gocu.curiosity.observations import ObservationAdapter
 from sb3_gocu.curiosity.reachability import PREDICTOR_HOLDOUT, QUALITY_KEYS, QualityPairs, reachability_pairs
-from sb3_gocu.curiosity.revisits import Calibration, default_cell
+from sb3_gocu.curiosity.revisits import Calibration, default_cell, first_cell
 from sb3_gocu.curiosity.reward import IntrinsicReturnNormalizer, RunningMean, revisit_factor
 from sb3_gocu.curiosity.scoring import Scorer, eq13_rows
 from sb3_gocu.curiosity.stores import MemoryBank, TrajectoryStore, observation_key
@@ -109,8 +109,9 @@ class GoalCuriosityModule:
         self.reward_centre = RunningMean(CENTRE_HORIZON)
         self.episodes, self.trajectories = self._new_env_stores()
         #: what counts as a revisit (``revisit_decay``): the cell of a state (:mod:`~sb3_gocu.curiosity.revisits`),
-        #: chosen by :meth:`pretrain` from the random-policy episodes; Go-Explore's cell until then
-        self.revisit_key = self._default_cell()
+        #: chosen by :meth:`pretrain` from the random-policy episodes; until then the finest (revisits.first_cell)
+        box = self.adapter.box
+        self.revisit_key = first_cell(self.adapter.layout, self.adapter.scale, self.adapter.raw_shape, box.low, box.high)
         self._calibration = Calibration(cfg.pretrain_steps)
         to_tensor = functools.partial(self.adapter.to_tensor, device=self.device)
         self.scorer = Scorer(self.episodes, cfg.embed_dim, to_tensor, (cfg.alpha, cfg.aggregation, cfg.reward_scale))

@@ -13,7 +13,8 @@ never repeat byte for byte, so a byte key never sees a revisit there and the age
 
 :func:`choose_cell` picks the parameters from the random-policy episodes that pretrain the VAE: the candidate whose
 *first-visit share* (the share of steps whose cell is new in its episode) lies nearest :data:`TARGET_SHARE`, the
-share of DoorKey's byte key, on which the rule was measured; among equal shares the finer cell. No SB3 import.
+share of DoorKey's byte key, on which the rule was measured; among equal shares the finer cell. Before the choice
+(:func:`first_cell`) an image's cell is the whole frame in 16 levels. No SB3 import.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ CELL_SIZES = ((4, 3), (6, 4), (8, 6), (11, 8), (16, 12), (22, 16), (32, 24), (45
 CELL_LEVELS = (4, 8, 16)
 #: SimHash bits tried for vectors
 SIMHASH_BITS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
-#: Go-Explore's cell (W, H, L), used until the random policy has given :data:`MIN_CALIBRATION_STEPS` observations
+#: Go-Explore's cell (W, H, L), used where the random policy gave fewer than :data:`MIN_CALIBRATION_STEPS` observations
 DEFAULT_CELL = (11, 8, 8)
 #: SimHash bits used until then
 DEFAULT_SIMHASH_BITS = 16
@@ -174,6 +175,16 @@ def default_cell(layout: str, scale: float, raw_shape: tuple[int, ...], low: np.
     h, w = _frame_size(layout, raw_shape)
     width, height, levels = DEFAULT_CELL
     return ImageCell(layout, scale, (h, w), min(width, w), min(height, h), levels)
+
+
+def first_cell(layout: str, scale: float, raw_shape: tuple[int, ...], low: np.ndarray | None = None,
+               high: np.ndarray | None = None) -> Cell:
+    """The cell the rule counts with before one is chosen (the pretraining's random steps): for images the finest
+    candidate, the whole frame in 16 levels, which on DoorKey tells apart exactly what the bytes do; for vectors the
+    default cell."""
+    if layout == "vector":
+        return default_cell(layout, scale, raw_shape, low, high)
+    return candidates(layout, scale, raw_shape)[-1]
 
 
 def _frame_size(layout: str, raw_shape: tuple[int, ...]) -> tuple[int, int]:

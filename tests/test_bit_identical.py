@@ -30,7 +30,6 @@ STEPS, SEED, N_ENVS = 61_440, 0, 16
 #: CPU model name -> {"policy", "vae", "predictor", "rewards"}: SHA-256 prefixes of the reference run
 RECORDED: dict[str, dict[str, str]] = {
     "Intel(R) Xeon(R) Processor (AVX-512)": {"policy": "1386df8cf6bf80ef", "vae": "0959c3d3674a648d", "predictor": "b9f7035fb3388db1", "rewards": "7f294fa064d8db41"},
-    "AMD EPYC (AVX-512)": {"policy": "e0ce06a64aed7396", "vae": "038b48bb11561446", "predictor": "1d1bd0a524b2df4a", "rewards": "c0e49da5a8b37dd1"},
 }
 
 

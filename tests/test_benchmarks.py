@@ -798,3 +798,50 @@ def test_atari_behaviour_probe_reports_what_a_ppo_gocu_agents_curiosity_pays(tmp
         (still, n_still), (moving, n_moving) = r["r_gc_still"], r["r_gc_moving"]
         assert n_still + n_moving == 64 - 1 - r["lives_lost"]
         assert all(0.0 <= value <= 0.1 + 1e-6 for value, n in ((still, n_still), (moving, n_moving)) if n)  # [0, alpha / delta]
+
+
+def test_skill_signal_phase_mastery_worked_out_by_hand():
+    """benchmarks/probes/skill_signal.py: a phase's mastery is the share of the episodes reaching it that go on; the
+    least mastered is the lowest of those reached often enough (ties: the later phase)."""
+    probe = load_script("skill_signal", "benchmarks/probes/skill_signal.py")
+    obs = np.zeros((2, 1), dtype=np.uint8)
+    episodes = [(obs, np.array([0, 0]), False), (obs, np.array([0, 1]), False),
+                (obs, np.array([2, 3]), True), (obs, np.array([1, 3]), False)]
+    mastery = probe.phase_mastery(episodes)
+    assert mastery[0] == {"reached": 1.0, "mastery": 0.75}
+    assert mastery[1] == {"reached": 0.75, "mastery": pytest.approx(2 / 3)}
+    assert mastery[2] == {"reached": 0.5, "mastery": 1.0}
+    assert mastery[3] == {"reached": 0.5, "mastery": 0.5}  # one of the two in the goal room reached the goal
+    assert probe.least_mastered(mastery) == 3
+    assert probe.least_mastered({0: {"reached": 1.0, "mastery": 0.5}, 1: {"reached": 0.05, "mastery": 0.0}}) == 0
+    assert probe.least_mastered({0: {"reached": 1.0, "mastery": 0.5}, 1: {"reached": 0.5, "mastery": 0.5}}) == 1
+
+
+def test_skill_signal_probe_pays_each_h_on_the_same_steps(two_runs):
+    """benchmarks/probes/skill_signal.py on the tiny run's model: every h is measured on the same paid steps (those
+    whose revisit cell is new in the episode), r_gc stays within eq 13's range, and h = max is the module's own."""
+    probe = load_script("skill_signal", "benchmarks/probes/skill_signal.py")
+    out, _ = two_runs
+    model_path = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
+    res = probe.main([str(model_path), "--env", "GoCu/DoorKey-5x5-v0", "--episodes", "4", "--pairs", "64"])["model_2048.zip"]
+    assert res["episodes"] == 4 and set(res["phases"]["aggregates"]) == set(probe.AGGREGATES)
+    model = PPO_GoCu.load(model_path, device="cpu")
+    cfg = model.curiosity.config
+    episodes = probe.play(model, "GoCu/DoorKey-5x5-v0", 4, 1000)
+    signal = probe.phase_signal(model, episodes, np.random.default_rng(0))
+    paid = sum(len(set(model.curiosity.revisit_key(o))) for o, _, _ in episodes)
+    for agg in signal["aggregates"].values():
+        assert sum(f["steps"] for f in agg["phases"].values()) == paid
+        for f in agg["phases"].values():
+            assert (cfg.alpha - 1) / cfg.reward_scale <= f["r_gc_mean"] <= cfg.alpha / cfg.reward_scale and 0 <= f["saturated"] <= 1
+    # h = max and h = mean are eq 13's own (sb3_gocu.curiosity.reward.curiosity_reward)
+    from sb3_gocu.curiosity.reward import curiosity_reward
+
+    obs = episodes[0][0]
+    goals = model.curiosity.goal_buffer.observations[model.curiosity.goal_buffer.sample(1, cfg.n_goals, np.random.default_rng(0))[0]]
+    mastery = model.curiosity.mastery(obs, goals)
+    for name, aggregation in (("max (the defaults)", "max"), ("mean", "mean")):
+        r_gc = (cfg.alpha - probe.AGGREGATES[name](mastery)) / cfg.reward_scale
+        assert th.allclose(r_gc, curiosity_reward(mastery, cfg.alpha, aggregation, cfg.reward_scale))
+    reached = [m["reached"] for m in signal["mastery"].values()]
+    assert reached[0] == 1.0 and reached == sorted(reached, reverse=True)

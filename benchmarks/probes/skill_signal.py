@@ -11,10 +11,15 @@ For each model, plays ``--episodes`` episodes of its own policy (sampled actions
    eq 15-16 with the predictor's own prior, as a predictor update labels them. Accuracy of m > 0.5 against
    p_skill > 0.5, the mean |m - p_skill|, and per distance band the mean m and the mean p_skill: does the predictor
    know which goals are within reach?
-2. **The spread of the mastery and of r_gc over the visited states, by phase** of the episode (0: no key, 1: key
-   picked up, 2: door opened): for each distinct state, h = the largest mastery over K goals drawn from the goal
-   buffer as at an episode start, and r_gc (eq 13); mean, std and the 10th and 90th percentiles. A signal that
-   separates mastered from unmastered regions pays the later phases, which the agent has practised least, more.
+2. **r_gc by phase, and which phase the agent has mastered least.** Each step is put in a phase of DoorKey: 0 no
+   key, 1 key held, 2 door open (the agent still on the key's side of the wall), 3 goal room (beyond the wall); a
+   phase's *mastery* is the share of the episodes that reach it and go on to the next (the goal room: to the goal).
+   For each step that the first-visit rule pays (its revisit cell new in its episode), h against K goals drawn from
+   the goal buffer once per episode, as at an episode start, and r_gc (eq 13); per phase the mean r_gc, its std,
+   and the share of steps where h saturates (above :data:`SATURATION`). The signal works when r_gc ranks the least
+   mastered phase (of those reached by at least :data:`MIN_PHASE_SHARE` of the episodes) first. The same is
+   reported for other h of the same mastery (:data:`AGGREGATES`, on the same goals and steps, offline: no run
+   learned with them), so that a design is measured before a learning run is spent on it.
 3. **What the goals cover**: the phase in which the played episodes saw each goal of the buffer (a goal seen in
    several phases counts for the earliest), and the share of goals not seen at all.
 """
@@ -26,36 +31,61 @@ import json
 import platform
 import sys
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch as th
+from minigrid.core.world_object import Door
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecTransposeImage
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
 from sb3_gocu import PPO_GoCu
-from sb3_gocu.curiosity.reward import curiosity_reward
 from sb3_gocu.curiosity.stores import observation_key
 
 BANDS = ((1, 5), (6, 10), (11, 15), (16, 20), (21, 30))
+#: the phases of a step (``info["task_phase"]``, with the door-open phase split at the wall)
+PHASES = ("no key", "key", "door open", "goal room")
+#: h above this counts as saturated: some goal of the K looks within reach
+SATURATION = 0.9
+#: a phase reached by fewer episodes than this share is not ranked
+MIN_PHASE_SHARE = 0.1
+#: h of eq 13 on the (n, K) mastery: the module's own (max), and designs measured offline
+AGGREGATES: dict[str, Callable[[th.Tensor], th.Tensor]] = {
+    "max (the defaults)": lambda m: m.max(dim=1).values,
+    "mean": lambda m: m.mean(dim=1),
+    "median": lambda m: m.median(dim=1).values,
+    "share of goals within reach (m > 0.5)": lambda m: (m > 0.5).float().mean(dim=1),
+}
 
 
-def play(model: PPO_GoCu, env_id: str, episodes: int, seed: int, n_envs: int = 8) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``episodes`` episodes of the model's policy: per episode the raw observations reached and their phases."""
+def beyond_the_wall(env: Any) -> bool:
+    """Whether a DoorKey env's agent stands beyond the wall (in the goal's room)."""
+    base = env.unwrapped
+    door = next((o for o in base.grid.grid if isinstance(o, Door)), None)
+    return door is not None and door.is_open and int(base.agent_pos[0]) > int(door.cur_pos[0])
+
+
+def play(model: PPO_GoCu, env_id: str, episodes: int, seed: int, n_envs: int = 8) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+    """``episodes`` episodes of the model's policy: per episode the raw observations reached, their phases (0-3, as
+    the module docstring numbers them) and whether it reached the goal."""
     module = model.curiosity
     venv = VecTransposeImage(make_vec_env(env_id, n_envs=n_envs, seed=seed))  # channels first, as the model was trained
     obs = venv.reset()
     current: list[list[tuple[np.ndarray, int]]] = [[] for _ in range(n_envs)]
-    done_episodes: list[tuple[np.ndarray, np.ndarray]] = []
+    done_episodes: list[tuple[np.ndarray, np.ndarray, bool]] = []
     while len(done_episodes) < episodes:
         actions, _ = model.predict(obs, deterministic=False)
         obs, _, dones, infos = venv.step(actions)
         for i, info in enumerate(infos):
             reached = info["terminal_observation"] if dones[i] else obs[i]
-            current[i].append((module.adapter.extract(reached[None])[0], int(info.get("task_phase", 0))))
+            success = bool(info.get("is_success", False))
+            phase = min(int(info.get("task_phase", 0)), 2)
+            if success or (phase == 2 and not dones[i] and beyond_the_wall(venv.venv.envs[i])):
+                phase = 3
+            current[i].append((module.adapter.extract(reached[None])[0], phase))
             if dones[i]:
-                done_episodes.append((np.stack([o for o, _ in current[i]]), np.array([p for _, p in current[i]])))
+                done_episodes.append((np.stack([o for o, _ in current[i]]), np.array([p for _, p in current[i]]), success))
                 current[i] = []
     venv.close()
     return done_episodes[:episodes]
@@ -73,7 +103,7 @@ def predictor_against_labels(model: PPO_GoCu, episodes: list[tuple[np.ndarray, n
     phi_s, phi_g, dist = [], [], []
     usable = [ep for ep in episodes if len(ep[0]) > 1]
     for _ in range(n_pairs):
-        obs, _ = usable[rng.integers(len(usable))]
+        obs = usable[rng.integers(len(usable))][0]
         y = int(rng.integers(1, min(cfg.max_distance, len(obs) - 1) + 1))
         t = int(rng.integers(0, len(obs) - y))
         keys = [observation_key(o) for o in obs[t : t + y + 1]]
@@ -98,34 +128,62 @@ def predictor_against_labels(model: PPO_GoCu, episodes: list[tuple[np.ndarray, n
     return out
 
 
-@th.no_grad()
-def spread_by_phase(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray]], rng: np.random.Generator) -> dict[str, Any]:
-    module, cfg = model.curiosity, model.curiosity.config
-    seen: dict[bytes, tuple[np.ndarray, int]] = {}
-    for obs, phases in episodes:
-        for o, p in zip(obs, phases):
-            seen.setdefault(observation_key(o), (o, int(p)))
-    states = np.stack([o for o, _ in seen.values()])
-    phases = np.array([p for _, p in seen.values()])
-    goals = module.goal_buffer.observations[module.goal_buffer.sample(1, cfg.n_goals, rng)[0]]
-    mastery = module.mastery(states, goals)
-    h = mastery.max(dim=1).values.numpy()
-    reward = curiosity_reward(mastery, cfg.alpha, cfg.aggregation, cfg.reward_scale).numpy()
-    out: dict[str, Any] = {}
-    for phase in sorted(set(phases.tolist())):
-        sel = phases == phase
-        out[str(phase)] = {
-            "states": int(sel.sum()),
-            "h_mean": float(h[sel].mean()), "h_p10": float(np.percentile(h[sel], 10)), "h_p90": float(np.percentile(h[sel], 90)),
-            "r_gc_mean": float(reward[sel].mean()), "r_gc_std": float(reward[sel].std()),
-            "r_gc_p10": float(np.percentile(reward[sel], 10)), "r_gc_p90": float(np.percentile(reward[sel], 90)),
-        }
+def phase_mastery(episodes: list[tuple[np.ndarray, np.ndarray, bool]]) -> dict[int, dict[str, float]]:
+    """Per phase: the share of episodes that reach it, and of those the share that go on (the goal room: to the goal)."""
+    furthest = np.array([int(phases.max()) for _, phases, _ in episodes])
+    success = np.array([s for _, _, s in episodes])
+    out = {}
+    for phase in range(len(PHASES)):
+        reached = furthest >= phase
+        if reached.any():
+            on = success[reached] if phase == len(PHASES) - 1 else furthest[reached] > phase
+            out[phase] = {"reached": float(reached.mean()), "mastery": float(on.mean())}
     return out
 
 
-def goal_coverage(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+def least_mastered(mastery: dict[int, dict[str, float]]) -> int | None:
+    """The phase of lowest mastery among those reached by at least :data:`MIN_PHASE_SHARE` of the episodes."""
+    candidates = {p: m["mastery"] for p, m in mastery.items() if m["reached"] >= MIN_PHASE_SHARE}
+    return min(candidates, key=lambda p: (candidates[p], -p)) if candidates else None
+
+
+@th.no_grad()
+def phase_signal(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray, bool]], rng: np.random.Generator) -> dict[str, Any]:
+    """r_gc of the steps the first-visit rule pays, per phase and per h of :data:`AGGREGATES`; see the module docstring."""
+    module, cfg = model.curiosity, model.curiosity.config
+    h_by: dict[str, list[np.ndarray]] = {name: [] for name in AGGREGATES}
+    phase_of: list[np.ndarray] = []
+    for obs, phases, _ in episodes:
+        keys = module.revisit_key(obs)
+        seen: set[bytes] = set()
+        paid = np.array([not (k in seen or seen.add(k)) for k in keys])
+        goals = module.goal_buffer.observations[module.goal_buffer.sample(1, cfg.n_goals, rng)[0]]
+        mastery = module.mastery(obs[paid], goals)
+        for name, aggregate in AGGREGATES.items():
+            h_by[name].append(aggregate(mastery).numpy())
+        phase_of.append(phases[paid])
+    phases = np.concatenate(phase_of)
+    mastery = phase_mastery(episodes)
+    weakest = least_mastered(mastery)
+    out: dict[str, Any] = {"mastery": mastery, "least_mastered": weakest, "aggregates": {}}
+    for name in AGGREGATES:
+        h = np.concatenate(h_by[name])
+        r_gc = (cfg.alpha - h) / cfg.reward_scale
+        per_phase = {}
+        for phase in sorted(set(phases.tolist())):
+            sel = phases == phase
+            per_phase[phase] = {"steps": int(sel.sum()), "r_gc_mean": float(r_gc[sel].mean()), "r_gc_std": float(r_gc[sel].std()),
+                                "saturated": float((h[sel] > SATURATION).mean())}
+        ranked = [p for p in per_phase if mastery.get(p, {}).get("reached", 0.0) >= MIN_PHASE_SHARE]
+        first = max(ranked, key=lambda p: per_phase[p]["r_gc_mean"]) if ranked else None
+        out["aggregates"][name] = {"phases": per_phase, "ranked_first": first,
+                                   "least_mastered_first": weakest is not None and first == weakest}
+    return out
+
+
+def goal_coverage(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray, bool]]) -> dict[str, Any]:
     phase_of: dict[bytes, int] = {}
-    for obs, phases in episodes:
+    for obs, phases, _ in episodes:
         for o, p in zip(obs, phases):
             key = observation_key(o)
             phase_of[key] = min(phase_of.get(key, 9), int(p))
@@ -165,21 +223,25 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         res = {
             "steps": int(model.num_timesteps),
             "episodes": len(episodes),
-            "success": float(np.mean([ph[-1] >= 3 for _, ph in episodes])) if episodes else float("nan"),
+            "success": float(np.mean([success for _, _, success in episodes])) if episodes else float("nan"),
             "predictor": predictor_against_labels(model, episodes, args.pairs, rng),
-            "phases": spread_by_phase(model, episodes, rng),
+            "phases": phase_signal(model, episodes, rng),
             "goals": goal_coverage(model, episodes),
         }
         results[Path(path).name if len(args.models) == 1 else path] = res
-        pr = res["predictor"]
-        print(f"\n{path} ({res['steps']:,} steps; {res['episodes']} episodes)")
+        pr, ph = res["predictor"], res["phases"]
+        print(f"\n{path} ({res['steps']:,} steps; {res['episodes']} episodes, success {res['success']:.2f})")
         print(f"  predictor on {pr['pairs']} held-out pairs: accuracy {pr['accuracy']:.3f}, mean |m - p_skill| {pr['mean_abs_error']:.3f}, "
               f"labelled mastered {pr['mastered_label_share']:.3f}")
         for band, b in pr["bands"].items():
             print(f"    distance {band:>5}: {b['pairs']:5d} pairs, mean m {b['mastery']:.3f}, mean p_skill {b['label']:.3f}")
-        for phase, f in res["phases"].items():
-            print(f"  phase {phase}: {f['states']:5d} states, h {f['h_mean']:.3f} (p10 {f['h_p10']:.3f}, p90 {f['h_p90']:.3f}), "
-                  f"r_gc {f['r_gc_mean']:.4f} +- {f['r_gc_std']:.4f} (p10 {f['r_gc_p10']:.4f}, p90 {f['r_gc_p90']:.4f})")
+        print("  phases (reached by / go on): " + ", ".join(f"{PHASES[p]} {m['reached']:.2f} / {m['mastery']:.2f}" for p, m in ph["mastery"].items())
+              + f"; least mastered: {PHASES[ph['least_mastered']] if ph['least_mastered'] is not None else 'none'}")
+        for name, agg in ph["aggregates"].items():
+            first = PHASES[agg["ranked_first"]] if agg["ranked_first"] is not None else "none"
+            print(f"  h = {name}: ranks first {first} ({'the least mastered' if agg['least_mastered_first'] else 'not the least mastered'})")
+            for phase, f in agg["phases"].items():
+                print(f"    {PHASES[phase]:>9}: {f['steps']:6d} paid steps, r_gc {f['r_gc_mean']:.4f} +- {f['r_gc_std']:.4f}, h saturated {f['saturated']:.2f}")
         print("  goals: " + ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in res["goals"].items()))
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))

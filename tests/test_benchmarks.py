@@ -815,6 +815,7 @@ def test_skill_signal_phase_mastery_worked_out_by_hand():
     assert probe.least_mastered(mastery) == 3
     assert probe.least_mastered({0: {"reached": 1.0, "mastery": 0.5}, 1: {"reached": 0.05, "mastery": 0.0}}) == 0
     assert probe.least_mastered({0: {"reached": 1.0, "mastery": 0.5}, 1: {"reached": 0.5, "mastery": 0.5}}) == 1
+    assert probe.least_mastered({0: {"reached": 1.0, "mastery": 1.0}, 1: {"reached": 1.0, "mastery": 0.96}}) is None
 
 
 def test_skill_signal_probe_pays_each_h_on_the_same_steps(two_runs):

@@ -50,6 +50,8 @@ PHASES = ("no key", "key", "door open", "goal room")
 SATURATION = 0.9
 #: a phase reached by fewer episodes than this share is not ranked
 MIN_PHASE_SHARE = 0.1
+#: where every ranked phase's mastery is at least this, no phase is the least mastered
+MASTERED = 0.95
 #: h of eq 13 on the (n, K) mastery: the module's own (max), and designs measured offline
 AGGREGATES: dict[str, Callable[[th.Tensor], th.Tensor]] = {
     "max (the defaults)": lambda m: m.max(dim=1).values,
@@ -142,9 +144,11 @@ def phase_mastery(episodes: list[tuple[np.ndarray, np.ndarray, bool]]) -> dict[i
 
 
 def least_mastered(mastery: dict[int, dict[str, float]]) -> int | None:
-    """The phase of lowest mastery among those reached by at least :data:`MIN_PHASE_SHARE` of the episodes."""
+    """The phase of lowest mastery among those reached by at least :data:`MIN_PHASE_SHARE` of the episodes (ties: the
+    later); None where all of them are mastered (:data:`MASTERED`)."""
     candidates = {p: m["mastery"] for p, m in mastery.items() if m["reached"] >= MIN_PHASE_SHARE}
-    return min(candidates, key=lambda p: (candidates[p], -p)) if candidates else None
+    weakest = min(candidates, key=lambda p: (candidates[p], -p)) if candidates else None
+    return None if weakest is None or candidates[weakest] >= MASTERED else weakest
 
 
 @th.no_grad()
@@ -236,10 +240,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         for band, b in pr["bands"].items():
             print(f"    distance {band:>5}: {b['pairs']:5d} pairs, mean m {b['mastery']:.3f}, mean p_skill {b['label']:.3f}")
         print("  phases (reached by / go on): " + ", ".join(f"{PHASES[p]} {m['reached']:.2f} / {m['mastery']:.2f}" for p, m in ph["mastery"].items())
-              + f"; least mastered: {PHASES[ph['least_mastered']] if ph['least_mastered'] is not None else 'none'}")
+              + f"; least mastered: {PHASES[ph['least_mastered']] if ph['least_mastered'] is not None else 'none (all mastered)'}")
         for name, agg in ph["aggregates"].items():
             first = PHASES[agg["ranked_first"]] if agg["ranked_first"] is not None else "none"
-            print(f"  h = {name}: ranks first {first} ({'the least mastered' if agg['least_mastered_first'] else 'not the least mastered'})")
+            verdict = "" if ph["least_mastered"] is None else " (the least mastered)" if agg["least_mastered_first"] else " (not the least mastered)"
+            print(f"  h = {name}: ranks first {first}{verdict}")
             for phase, f in agg["phases"].items():
                 print(f"    {PHASES[phase]:>9}: {f['steps']:6d} paid steps, r_gc {f['r_gc_mean']:.4f} +- {f['r_gc_std']:.4f}, h saturated {f['saturated']:.2f}")
         print("  goals: " + ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in res["goals"].items()))

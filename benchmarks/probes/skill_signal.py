@@ -152,9 +152,13 @@ def least_mastered(mastery: dict[int, dict[str, float]]) -> int | None:
 
 
 @th.no_grad()
-def phase_signal(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray, bool]], rng: np.random.Generator) -> dict[str, Any]:
-    """r_gc of the steps the first-visit rule pays, per phase and per h of :data:`AGGREGATES`; see the module docstring."""
+def phase_signal(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray, bool]], rng: np.random.Generator,
+                 mastery_of: Callable[[np.ndarray, np.ndarray], th.Tensor] | None = None) -> dict[str, Any]:
+    """r_gc of the steps the first-visit rule pays, per phase and per h of :data:`AGGREGATES`; see the module docstring.
+
+    :param mastery_of: (raw states, raw goals) -> (n_states, n_goals) mastery; None: the module's own"""
     module, cfg = model.curiosity, model.curiosity.config
+    mastery_of = module.mastery if mastery_of is None else mastery_of
     h_by: dict[str, list[np.ndarray]] = {name: [] for name in AGGREGATES}
     phase_of: list[np.ndarray] = []
     for obs, phases, _ in episodes:
@@ -162,7 +166,7 @@ def phase_signal(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray, b
         seen: set[bytes] = set()
         paid = np.array([not (k in seen or seen.add(k)) for k in keys])
         goals = module.goal_buffer.observations[module.goal_buffer.sample(1, cfg.n_goals, rng)[0]]
-        mastery = module.mastery(obs[paid], goals)
+        mastery = mastery_of(obs[paid], goals)
         for name, aggregate in AGGREGATES.items():
             h_by[name].append(aggregate(mastery).numpy())
         phase_of.append(phases[paid])

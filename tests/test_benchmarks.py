@@ -846,3 +846,39 @@ def test_skill_signal_probe_pays_each_h_on_the_same_steps(two_runs):
         assert th.allclose(r_gc, curiosity_reward(mastery, cfg.alpha, aggregation, cfg.reward_scale))
     reached = [m["reached"] for m in signal["mastery"].values()]
     assert reached[0] == 1.0 and reached == sorted(reached, reverse=True)
+
+
+def test_rnetwork_probe_draws_the_modules_reachability_pairs():
+    """benchmarks/probes/rnetwork.py: near pairs lie 1..5 steps apart in one episode; a far pair's goal is not seen in
+    the d_max steps after its state, in the same episode."""
+    probe = load_script("rnetwork", "benchmarks/probes/rnetwork.py")
+    rng = np.random.default_rng(0)
+    # two episodes of 1-pixel frames: the first walks 0..59 and back to 0 at step 60, the second stands still
+    walk = np.concatenate([np.arange(60), [0]]).astype(np.uint8)[:, None]
+    episodes = [(walk, np.zeros(61, dtype=np.int64), False), (np.zeros((40, 1), dtype=np.uint8), np.zeros(40, dtype=np.int64), False)]
+    pairs = probe.Pairs(episodes, far=30)
+    episode_of = np.searchsorted(pairs.starts, np.arange(len(pairs.frames)), side="right") - 1
+    s, g = pairs.near(500, rng)
+    assert np.all(episode_of[s] == episode_of[g]) and np.all((g - s >= 1) & (g - s <= 5))
+    s, g = pairs.far_pairs(200, rng)
+    assert len(s) > 0 and np.all(episode_of[s] == 0) and np.all(episode_of[g] == 0)  # the still episode has none
+    assert np.all(g - s >= 30)
+    for t, u in zip(s, g):  # the goal's frame is not among the 30 after the state (step 60 repeats step 0)
+        assert pairs.frames[u, 0] not in pairs.frames[t : t + 30, 0]
+    assert not np.any((s == 0) & (g == 60))
+
+
+def test_rnetwork_probe_scores_each_arm(two_runs):
+    """benchmarks/probes/rnetwork.py end to end on the tiny run's model: the module's own predictor is scored as saved,
+    the fresh ones after their Adam steps; AUCs are probabilities; r_gc by phase comes for the module and the R-network."""
+    probe = load_script("rnetwork", "benchmarks/probes/rnetwork.py")
+    out, _ = two_runs
+    model = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
+    threads = th.get_num_threads()
+    res = probe.main([str(model), "--env", "GoCu/DoorKey-5x5-v0", "--episodes", "6", "--adam", "3", "--batch", "16", "--test-pairs", "32"])
+    assert th.get_num_threads() == threads
+    assert res["module"]["adam_steps"] == 0 and res["phi"]["adam_steps"] == res["r-network"]["adam_steps"] == 3
+    for arm in ("module", "phi", "r-network"):
+        assert np.isnan(res[arm]["auc_far"]) or 0 <= res[arm]["auc_far"] <= 1
+        assert 0 <= res[arm]["auc_goals"] <= 1
+    assert res["module"]["phases"]["aggregates"] and res["r-network"]["phases"]["aggregates"]

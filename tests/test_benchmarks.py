@@ -882,3 +882,30 @@ def test_rnetwork_probe_scores_each_arm(two_runs):
         assert np.isnan(res[arm]["auc_far"]) or 0 <= res[arm]["auc_far"] <= 1
         assert 0 <= res[arm]["auc_goals"] <= 1
     assert res["module"]["phases"]["aggregates"] and res["r-network"]["phases"]["aggregates"]
+
+
+def test_rnetwork_probe_scores_a_batch_norm_net_pair_by_pair():
+    """benchmarks/probes/rnetwork.py scores in eval mode: a pair's score does not depend on the other pairs of its
+    test batch (in train mode batch norm would normalise a batch of near pairs apart from one of far pairs)."""
+    import argparse
+
+    from sb3_gocu.curiosity.networks import MasteryPredictor
+
+    probe = load_script("rnetwork", "benchmarks/probes/rnetwork.py")
+    rng = np.random.default_rng(0)
+    frames = rng.normal(size=(80, 4)).astype(np.float32)
+    episodes = [(frames, np.zeros(80, dtype=np.int64), False)]
+    net = MasteryPredictor(4, (8,))
+
+    def logits(s, g):
+        out = net(th.as_tensor(s), th.as_tensor(g))
+        return out[:, 1] - out[:, 0]
+
+    args = argparse.Namespace(adam=2, batch=16, lr=1e-3)
+    # the "far" batch is the near batch's first pair alone: pair by pair, the two score it alike (AUC of ties 0.5 at it)
+    test = {"near": (frames[:8], frames[1:9]), "far": (frames[:1], frames[1:2]), "goals": (frames[:8], frames[40:48])}
+    res = probe.train_and_score(logits, net, True, probe.Pairs(episodes, far=30), frames[60:], test, args, rng)
+    assert not net.training and res["adam_steps"] == 2
+    with th.no_grad():
+        alone, among = logits(frames[:1], frames[1:2]), logits(frames[:8], frames[1:9])[:1]
+    assert th.allclose(alone, among)

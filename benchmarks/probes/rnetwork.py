@@ -115,15 +115,17 @@ class Pairs:
         return rng.integers(len(self.frames), size=n)
 
 
-def train_and_score(name: str, logits_of: Callable[[np.ndarray, np.ndarray], th.Tensor], params: list[th.nn.Parameter],
-                    train: Pairs, goals: np.ndarray, test: dict[str, tuple[np.ndarray, np.ndarray]], args: argparse.Namespace,
+def train_and_score(logits_of: Callable[[np.ndarray, np.ndarray], th.Tensor], net: nn.Module, fresh: bool, train: Pairs,
+                    goals: np.ndarray, test: dict[str, tuple[np.ndarray, np.ndarray]], args: argparse.Namespace,
                     rng: np.random.Generator) -> dict[str, float]:
-    """Trains on ``train``'s pairs (``args.adam`` Adam steps; none without ``params``), then scores on ``test``.
+    """Trains ``net`` on ``train``'s pairs (``args.adam`` Adam steps, where ``fresh``), then scores it in eval mode on
+    ``test`` (batch norm with its running statistics: a test batch holds one kind of pair only).
 
-    :param logits_of: (raw states, raw goals) -> mastery logits (n,)"""
+    :param logits_of: (raw states, raw goals) -> mastery logits (n,), through ``net``"""
     started = time.perf_counter()
-    if params:
-        optimiser = th.optim.Adam(params, lr=args.lr)
+    if fresh:
+        net.train()
+        optimiser = th.optim.Adam(net.parameters(), lr=args.lr)
         half, quarter = args.batch // 2, args.batch // 4
         for _ in range(args.adam):
             s_near, g_near = train.near(half, rng)
@@ -138,10 +140,11 @@ def train_and_score(name: str, logits_of: Callable[[np.ndarray, np.ndarray], th.
             loss.backward()
             optimiser.step()
     seconds = time.perf_counter() - started
+    net.eval()
     with th.no_grad():
         scores = {kind: logits_of(s, g).float().numpy() for kind, (s, g) in test.items()}
     return {"auc_far": auc(scores["near"], scores["far"]), "auc_goals": auc(scores["near"], scores["goals"]),
-            "train_s": seconds, "adam_steps": args.adam if params else 0}
+            "train_s": seconds, "adam_steps": args.adam if fresh else 0}
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -200,13 +203,10 @@ def run(args: argparse.Namespace, argv: Sequence[str] | None) -> dict[str, Any]:
     shape = module.adapter.input_shape
     rnet = RNetwork(shape[0], shape[1])
     results: dict[str, Any] = {"episodes": len(episodes)}
-    arms = [("module", phi_logits(own), []), ("phi", phi_logits(phi_predictor), list(phi_predictor.parameters())),
-            ("r-network", lambda s, g: rnet(to_x(s), to_x(g)), list(rnet.parameters()))]
-    for name, logits_of, params in arms:
-        for net in (phi_predictor, rnet):
-            net.train(bool(params))
-        res = train_and_score(name, logits_of, params, train, goals, test, args, rng)
-        phi_predictor.eval(), rnet.eval()
+    arms = [("module", phi_logits(own), own, False), ("phi", phi_logits(phi_predictor), phi_predictor, True),
+            ("r-network", lambda s, g: rnet(to_x(s), to_x(g)), rnet, True)]
+    for name, logits_of, net, fresh in arms:
+        res = train_and_score(logits_of, net, fresh, train, goals, test, args, rng)
         results[name] = res
         print(f"  {name:>9}: auc_far {res['auc_far']:.3f}, auc_goals {res['auc_goals']:.3f} ({res['adam_steps']} Adam steps, {res['train_s']:.0f} s)")
 

@@ -71,7 +71,7 @@ class RNetwork(nn.Module):
 
 
 class Pairs:
-    """Draws the module's reachability pairs from episodes, as index triples into a flat frame array.
+    """Draws the module's reachability pairs from episodes, as (state, goal) indices into a flat frame array.
 
     :param episodes: the episodes (raw frames first)
     :param far: d_max
@@ -190,8 +190,7 @@ def run(args: argparse.Namespace, argv: Sequence[str] | None) -> dict[str, Any]:
     def to_x(raw: np.ndarray) -> th.Tensor:
         return module.adapter.to_tensor(raw, th.device("cpu"))
 
-    module.predictor.eval()
-    own = module.predictor
+    own = module.predictor  # scored in eval mode by train_and_score, as saved
     phi_predictor = MasteryPredictor(cfg.embed_dim, cfg.predictor_hidden)
 
     def phi_logits(predictor: MasteryPredictor) -> Callable[[np.ndarray, np.ndarray], th.Tensor]:

@@ -825,7 +825,8 @@ def test_skill_signal_probe_pays_each_h_on_the_same_steps(two_runs):
     out, _ = two_runs
     model_path = out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip"
     res = probe.main([str(model_path), "--env", "GoCu/DoorKey-5x5-v0", "--episodes", "4", "--pairs", "64"])["model_2048.zip"]
-    assert res["episodes"] == 4 and set(res["phases"]["aggregates"]) == set(probe.AGGREGATES)
+    assert res["episodes"] == 4 and set(res["phases"]) == set(probe.GOAL_DESIGNS)
+    assert all(set(ph["aggregates"]) == set(probe.AGGREGATES) for ph in res["phases"].values())
     model = PPO_GoCu.load(model_path, device="cpu")
     cfg = model.curiosity.config
     episodes = probe.play(model, "GoCu/DoorKey-5x5-v0", 4, 1000)
@@ -846,6 +847,30 @@ def test_skill_signal_probe_pays_each_h_on_the_same_steps(two_runs):
         assert th.allclose(r_gc, curiosity_reward(mastery, cfg.alpha, aggregation, cfg.reward_scale))
     reached = [m["reached"] for m in signal["mastery"].values()]
     assert reached[0] == 1.0 and reached == sorted(reached, reverse=True)
+
+
+def test_skill_signal_goal_designs_draw_where_they_say():
+    """benchmarks/probes/skill_signal.py's goal designs: the spread-out goals include an extreme of the buffer in phi and
+    lie at least 3 apart (farthest-point picks from any start on a line of 9);
+    recent goals come only from the RECENT episodes before the paid one (wrapping round), ends only from their last
+    END_STEPS steps."""
+    from types import SimpleNamespace
+
+    probe = load_script("skill_signal", "benchmarks/probes/skill_signal.py")
+    rng = np.random.default_rng(0)
+    # a buffer of 9 goals on a line in phi, the goal's observation holding its index
+    buffer = SimpleNamespace(size=9, embeddings=th.arange(9, dtype=th.float32)[:, None], observations=np.arange(9)[:, None])
+    model = SimpleNamespace(curiosity=SimpleNamespace(goal_buffer=buffer))
+    for _ in range(5):
+        goals = probe.distinct_goals(model, [], 0, 3, rng)[:, 0]
+        assert {0, 8} & set(goals.tolist()) and np.diff(np.sort(goals)).min() >= 3
+    # 40 episodes of 100 steps; a frame holds (episode, step)
+    episodes = [(np.stack([np.full(100, e), np.arange(100)], axis=1), np.zeros(100, dtype=np.int64), False) for e in range(40)]
+    for i, before in ((30, set(range(14, 30))), (3, {0, 1, 2} | set(range(27, 40)))):
+        goals = probe.recent_goals(ends_only=False)(model, episodes, i, 500, rng)
+        assert set(goals[:, 0].tolist()) == before and goals[:, 1].min() < 50
+        goals = probe.recent_goals(ends_only=True)(model, episodes, i, 500, rng)
+        assert set(goals[:, 0].tolist()) == before and goals[:, 1].min() >= 100 - probe.END_STEPS
 
 
 def test_rnetwork_probe_draws_the_modules_reachability_pairs():

@@ -19,7 +19,8 @@ For each model, plays ``--episodes`` episodes of its own policy (sampled actions
    and the share of steps where h saturates (above :data:`SATURATION`). The signal works when r_gc ranks the least
    mastered phase (of those reached by at least :data:`MIN_PHASE_SHARE` of the episodes) first. The same is
    reported for other h of the same mastery (:data:`AGGREGATES`, on the same goals and steps, offline: no run
-   learned with them), so that a design is measured before a learning run is spent on it.
+   learned with them), so that a design is measured before a learning run is spent on it; and likewise for other
+   sources of the K goals (:data:`GOAL_DESIGNS`: the buffer spread out in phi, or the states of recent episodes).
 3. **What the goals cover**: the phase in which the played episodes saw each goal of the buffer (a goal seen in
    several phases counts for the earliest), and the share of goals not seen at all.
 """
@@ -60,6 +61,9 @@ AGGREGATES: dict[str, Callable[[th.Tensor], th.Tensor]] = {
     "share of goals within reach (m > 0.5)": lambda m: (m > 0.5).float().mean(dim=1),
 }
 
+#: played episodes: per episode its raw observations, their phases and whether it reached the goal
+Episodes = list[tuple[np.ndarray, np.ndarray, bool]]
+
 
 def beyond_the_wall(env: Any) -> bool:
     """Whether a DoorKey env's agent stands beyond the wall (in the goal's room)."""
@@ -68,14 +72,14 @@ def beyond_the_wall(env: Any) -> bool:
     return door is not None and door.is_open and int(base.agent_pos[0]) > int(door.cur_pos[0])
 
 
-def play(model: PPO_GoCu, env_id: str, episodes: int, seed: int, n_envs: int = 8) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+def play(model: PPO_GoCu, env_id: str, episodes: int, seed: int, n_envs: int = 8) -> Episodes:
     """``episodes`` episodes of the model's policy: per episode the raw observations reached, their phases (0-3, as
     the module docstring numbers them) and whether it reached the goal."""
     module = model.curiosity
     venv = VecTransposeImage(make_vec_env(env_id, n_envs=n_envs, seed=seed))  # channels first, as the model was trained
     obs = venv.reset()
     current: list[list[tuple[np.ndarray, int]]] = [[] for _ in range(n_envs)]
-    done_episodes: list[tuple[np.ndarray, np.ndarray, bool]] = []
+    done_episodes: Episodes = []
     while len(done_episodes) < episodes:
         actions, _ = model.predict(obs, deterministic=False)
         obs, _, dones, infos = venv.step(actions)
@@ -130,7 +134,7 @@ def predictor_against_labels(model: PPO_GoCu, episodes: list[tuple[np.ndarray, n
     return out
 
 
-def phase_mastery(episodes: list[tuple[np.ndarray, np.ndarray, bool]]) -> dict[int, dict[str, float]]:
+def phase_mastery(episodes: Episodes) -> dict[int, dict[str, float]]:
     """Per phase: the share of episodes that reach it, and of those the share that go on (the goal room: to the goal)."""
     furthest = np.array([int(phases.max()) for _, phases, _ in episodes])
     success = np.array([s for _, _, s in episodes])
@@ -151,21 +155,68 @@ def least_mastered(mastery: dict[int, dict[str, float]]) -> int | None:
     return None if weakest is None or candidates[weakest] >= MASTERED else weakest
 
 
+#: a goal design: (model, episodes, index of the episode being paid, K, rng) -> the K raw goals of that episode
+GoalDesign = Callable[[PPO_GoCu, Episodes, int, int, np.random.Generator], np.ndarray]
+#: how many episodes before the paid one count as recent
+RECENT = 16
+#: an episode's end, for "ends of recent episodes": its last this many steps
+END_STEPS = 20
+
+
+def buffer_goals(model: PPO_GoCu, episodes: Episodes, i: int, k: int, rng: np.random.Generator) -> np.ndarray:
+    """K goals drawn from the goal buffer, as the module draws them at an episode start."""
+    buffer = model.curiosity.goal_buffer
+    return buffer.observations[buffer.sample(1, k, rng)[0]]
+
+
+def distinct_goals(model: PPO_GoCu, episodes: Episodes, i: int, k: int, rng: np.random.Generator) -> np.ndarray:
+    """K goals of the buffer spread out in phi: a random first goal, then each time the goal farthest from those taken."""
+    buffer = model.curiosity.goal_buffer
+    e = buffer.embeddings[: buffer.size]
+    taken = [int(rng.integers(buffer.size))]
+    nearest = th.linalg.vector_norm(e - e[taken[0]], dim=1)
+    while len(taken) < min(k, buffer.size):
+        taken.append(int(nearest.argmax()))
+        nearest = th.minimum(nearest, th.linalg.vector_norm(e - e[taken[-1]], dim=1))
+    return buffer.observations[np.array(taken)]
+
+
+def recent_goals(ends_only: bool) -> GoalDesign:
+    """K goals drawn from the states of the :data:`RECENT` episodes played before the paid one (in the order they
+    ended, wrapping round at the start), from all their steps or from their last :data:`END_STEPS`."""
+    def goals(model: PPO_GoCu, episodes: Episodes, i: int, k: int, rng: np.random.Generator) -> np.ndarray:
+        recent = [episodes[(i - j) % len(episodes)][0] for j in range(1, min(RECENT, len(episodes) - 1) + 1)] or [episodes[i][0]]
+        pool = np.concatenate([obs[-END_STEPS:] if ends_only else obs for obs in recent])
+        return pool[rng.choice(len(pool), size=k, replace=len(pool) < k)]
+    return goals
+
+
+#: where the K goals of an episode come from: the module's own (the buffer) and designs measured offline
+GOAL_DESIGNS: dict[str, GoalDesign] = {
+    "buffer (the defaults)": buffer_goals,
+    "buffer, spread out in phi": distinct_goals,
+    "recent episodes": recent_goals(ends_only=False),
+    "ends of recent episodes": recent_goals(ends_only=True),
+}
+
+
 @th.no_grad()
-def phase_signal(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray, bool]], rng: np.random.Generator,
-                 mastery_of: Callable[[np.ndarray, np.ndarray], th.Tensor] | None = None) -> dict[str, Any]:
+def phase_signal(model: PPO_GoCu, episodes: Episodes, rng: np.random.Generator,
+                 mastery_of: Callable[[np.ndarray, np.ndarray], th.Tensor] | None = None,
+                 goals_of: GoalDesign = buffer_goals) -> dict[str, Any]:
     """r_gc of the steps the first-visit rule pays, per phase and per h of :data:`AGGREGATES`; see the module docstring.
 
-    :param mastery_of: (raw states, raw goals) -> (n_states, n_goals) mastery; None: the module's own"""
+    :param mastery_of: (raw states, raw goals) -> (n_states, n_goals) mastery; None: the module's own
+    :param goals_of: where each episode's K goals come from (one of :data:`GOAL_DESIGNS`)"""
     module, cfg = model.curiosity, model.curiosity.config
     mastery_of = module.mastery if mastery_of is None else mastery_of
     h_by: dict[str, list[np.ndarray]] = {name: [] for name in AGGREGATES}
     phase_of: list[np.ndarray] = []
-    for obs, phases, _ in episodes:
+    for i, (obs, phases, _) in enumerate(episodes):
         keys = module.revisit_key(obs)
         seen: set[bytes] = set()
         paid = np.array([not (k in seen or seen.add(k)) for k in keys])
-        goals = module.goal_buffer.observations[module.goal_buffer.sample(1, cfg.n_goals, rng)[0]]
+        goals = goals_of(model, episodes, i, cfg.n_goals, rng)
         mastery = mastery_of(obs[paid], goals)
         for name, aggregate in AGGREGATES.items():
             h_by[name].append(aggregate(mastery).numpy())
@@ -189,7 +240,7 @@ def phase_signal(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray, b
     return out
 
 
-def goal_coverage(model: PPO_GoCu, episodes: list[tuple[np.ndarray, np.ndarray, bool]]) -> dict[str, Any]:
+def goal_coverage(model: PPO_GoCu, episodes: Episodes) -> dict[str, Any]:
     phase_of: dict[bytes, int] = {}
     for obs, phases, _ in episodes:
         for o, p in zip(obs, phases):
@@ -233,24 +284,27 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             "episodes": len(episodes),
             "success": float(np.mean([success for _, _, success in episodes])) if episodes else float("nan"),
             "predictor": predictor_against_labels(model, episodes, args.pairs, rng),
-            "phases": phase_signal(model, episodes, rng),
+            "phases": {name: phase_signal(model, episodes, rng, goals_of=design) for name, design in GOAL_DESIGNS.items()},
             "goals": goal_coverage(model, episodes),
         }
         results[Path(path).name if len(args.models) == 1 else path] = res
-        pr, ph = res["predictor"], res["phases"]
+        pr = res["predictor"]
         print(f"\n{path} ({res['steps']:,} steps; {res['episodes']} episodes, success {res['success']:.2f})")
         print(f"  predictor on {pr['pairs']} held-out pairs: accuracy {pr['accuracy']:.3f}, mean |m - p_skill| {pr['mean_abs_error']:.3f}, "
               f"labelled mastered {pr['mastered_label_share']:.3f}")
         for band, b in pr["bands"].items():
             print(f"    distance {band:>5}: {b['pairs']:5d} pairs, mean m {b['mastery']:.3f}, mean p_skill {b['label']:.3f}")
+        ph = next(iter(res["phases"].values()))
         print("  phases (reached by / go on): " + ", ".join(f"{PHASES[p]} {m['reached']:.2f} / {m['mastery']:.2f}" for p, m in ph["mastery"].items())
               + f"; least mastered: {PHASES[ph['least_mastered']] if ph['least_mastered'] is not None else 'none (all mastered)'}")
-        for name, agg in ph["aggregates"].items():
-            first = PHASES[agg["ranked_first"]] if agg["ranked_first"] is not None else "none"
-            verdict = "" if ph["least_mastered"] is None else " (the least mastered)" if agg["least_mastered_first"] else " (not the least mastered)"
-            print(f"  h = {name}: ranks first {first}{verdict}")
-            for phase, f in agg["phases"].items():
-                print(f"    {PHASES[phase]:>9}: {f['steps']:6d} paid steps, r_gc {f['r_gc_mean']:.4f} +- {f['r_gc_std']:.4f}, h saturated {f['saturated']:.2f}")
+        print("  paid steps per phase: " + ", ".join(f"{PHASES[p]} {f['steps']}" for p, f in next(iter(ph["aggregates"].values()))["phases"].items()))
+        for design, ph in res["phases"].items():
+            print(f"  goals from {design}: r_gc per phase (share of h saturated)")
+            for name, agg in ph["aggregates"].items():
+                first = PHASES[agg["ranked_first"]] if agg["ranked_first"] is not None else "none"
+                verdict = "" if ph["least_mastered"] is None else " (the least mastered)" if agg["least_mastered_first"] else ""
+                print(f"    h = {name:<38}" + "  ".join(f"{f['r_gc_mean']:.4f} ({f['saturated']:.2f})" for f in agg["phases"].values())
+                      + f"  -> first: {first}{verdict}")
         print("  goals: " + ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in res["goals"].items()))
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))

@@ -18,6 +18,10 @@ paper's ``r_e + intrinsic_coef * r_gc``);
 ``mode="separate"`` leaves the reward extrinsic (for :class:`~sb3_gocu.PPO_GoCu`, which reads r_gc from
 ``infos``). Put the wrappers *above* ``Monitor`` (as ``make_vec_env`` does), so that the episode returns
 Monitor reports stay extrinsic.
+
+A life lost under SB3's ``EpisodicLifeEnv`` (``AtariWrapper``'s ``terminal_on_life_loss``) ends the learner's episode,
+not the curiosity's: the first-visit memory, the K goals and the reachability spans last the whole game, so that
+losing a life does not pay the game's cells anew.
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from stable_baselines3.common.atari_wrappers import EpisodicLifeEnv
+from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
@@ -132,11 +138,24 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs, centred)
         self.module.ensure_envs(self.num_envs)
 
+    #: per env, whether it is wrapped in ``EpisodicLifeEnv`` (None until the first step: env stacks pickled before it
+    #: existed load without it)
+    _lives: np.ndarray | None = None
+
     def reset(self) -> Any:
         obs = self.venv.reset()
         self.module.begin_episodes(np.arange(self.num_envs))
         self._episode_sums.clear()
         return obs
+
+    def _games_over(self, dones: np.ndarray) -> np.ndarray:
+        """``dones`` less the lives lost under ``EpisodicLifeEnv`` (its ``was_real_done``: the game went on)."""
+        if self._lives is None:
+            self._lives = np.array(self.venv.env_is_wrapped(EpisodicLifeEnv), dtype=bool)
+        ends = dones.copy()
+        for i in np.flatnonzero(dones & self._lives):
+            ends[i] = bool(self.venv.get_attr("was_real_done", indices=[int(i)])[0])
+        return ends
 
     def step_wait(self) -> VecEnvStepReturn:
         obs, rewards, dones, infos = self.venv.step_wait()
@@ -155,7 +174,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
                     for i in done_idx:
                         reached[i] = infos[i]["terminal_observation"]
         centre = self._centre()
-        raw, normalized = self.module.step(reached, dones)
+        raw, normalized = self.module.step(reached, self._games_over(dones) if dones.any() else dones)
         rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i], i, centre) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
 
@@ -187,6 +206,11 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
         self._setup_gocu(env.observation_space, module, mode, intrinsic_coef, curiosity_kwargs, centred)
         self.env_index = self.module.register_env()
         self._index = np.array([self.env_index])
+        self._lives = is_wrapped(env, EpisodicLifeEnv)
+
+    def _game_over(self) -> bool:
+        """Whether the episode that just ended ended the game (not a life lost under ``EpisodicLifeEnv``)."""
+        return not getattr(self, "_lives", False) or bool(self.env.get_wrapper_attr("was_real_done"))
 
     @staticmethod
     def _batch(obs: Any) -> Any:
@@ -196,13 +220,14 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict]:
         obs, info = self.env.reset(**kwargs)
-        self.module.begin_episodes(self._index)
-        self._episode_sums.clear()
+        if self._game_over():  # after a lost life the game, and the curiosity's episode, go on
+            self.module.begin_episodes(self._index)
+            self._episode_sums.clear()
         return obs, info
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         obs, reward, terminated, truncated, info = self.env.step(action)
-        done = bool(terminated or truncated)
+        done = bool(terminated or truncated) and self._game_over()
         centre = self._centre()
         raw, normalized = self.module.step(self._batch(obs), np.array([done]), self._index)
         return obs, self._report(info, reward, raw[0], normalized[0], centre=centre), terminated, truncated, info

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch as th
 from stable_baselines3 import A2C, PPO
+from stable_baselines3.common.atari_wrappers import EpisodicLifeEnv
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
@@ -116,6 +117,46 @@ def test_ppo_settings_default_to_the_papers_and_given_ones_win():
     # given ones win, by keyword or by position (learning_rate, n_steps are PPO's first two after env)
     model = PPO_GoCu("MlpPolicy", chain_venv(), 3e-4, 64, batch_size=32, ent_coef=0.0, curiosity_kwargs=SMALL_CURIOSITY)
     assert settings(model) == {**PAPER_PPO_KWARGS, "learning_rate": 3e-4, "n_steps": 64, "batch_size": 32, "ent_coef": 0.0}
+
+
+class LivesEnv(ChainEnv):
+    """ChainEnv with Atari's lives (``unwrapped.ale.lives()``, as ``EpisodicLifeEnv`` reads them): one lost every 4
+    steps, the game over with the third."""
+
+    def __init__(self):
+        super().__init__(length=50, max_steps=100)
+        self.lives = 3
+        self.ale = type("Ale", (), {"lives": lambda _: self.lives})()
+
+    def reset(self, *, seed=None, options=None):
+        self.lives = 3
+        return super().reset(seed=seed)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        self.lives -= self.t % 4 == 0
+        return obs, reward, terminated or self.lives == 0, truncated, info
+
+
+@pytest.mark.parametrize("vectorised", [True, False])
+def test_a_lost_life_ends_the_learners_episode_not_the_curiositys(vectorised):
+    """Under SB3's EpisodicLifeEnv a lost life is a done for the learner; the curiosity's episode (its id, goals and
+    first-visit memory) goes on to the end of the game, for both wrappers."""
+    make = lambda: EpisodicLifeEnv(Monitor(LivesEnv()))  # AtariWrapper's order: Monitor below
+    if vectorised:
+        venv = GoCuVecEnvWrapper(DummyVecEnv([make]), curiosity_kwargs=SMALL_CURIOSITY)
+        module = venv.module
+    else:
+        module = GoalCuriosityModule(LivesEnv().observation_space, **SMALL_CURIOSITY, seed=0)
+        venv = DummyVecEnv([lambda: GoCuWrapper(make(), module=module)])
+    venv.reset()
+    episode, dones, games = int(module.episodes.ids[0]), 0, 0
+    for _ in range(30):
+        _, _, done, infos = venv.step(np.ones(1, dtype=np.int64))
+        game_over = "episode" in infos[0]  # Monitor, below EpisodicLifeEnv: the game's end
+        assert (int(module.episodes.ids[0]) != episode) == game_over
+        episode, dones, games = int(module.episodes.ids[0]), dones + done[0], games + game_over
+    assert games == 3 and dones == 3 * games  # three lives a game (10 agent steps and 2 no-op steps of EpisodicLifeEnv)
 
 
 def test_monitor_return_stays_extrinsic_and_gym_wrapper_matches():

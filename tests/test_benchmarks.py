@@ -795,6 +795,10 @@ def test_atari_behaviour_probe_reports_what_a_ppo_gocu_agents_curiosity_pays(tmp
     for name in ("agent", "random"):
         r = result[name]
         assert 1 <= r["module_cells"] <= 64
+        # a cell new in its game is new in its life; within one game the cells new in it are the distinct cells
+        assert r["first_visit_share_game"] <= r["first_visit_share_life"] <= 1
+        if r["games"] == 0:
+            assert round(r["first_visit_share_game"] * 64) == r["module_cells"]
         (still, n_still), (moving, n_moving) = r["r_gc_still"], r["r_gc_moving"]
         assert n_still + n_moving == 64 - 1 - r["lives_lost"]
         assert all(0.0 <= value <= 0.1 + 1e-6 for value, n in ((still, n_still), (moving, n_moving)) if n)  # [0, alpha / delta]

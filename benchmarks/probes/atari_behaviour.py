@@ -10,8 +10,10 @@ rule told apart before it keyed on cells), the distinct cells (Go-Explore's fixe
 to 11x8 pixels, 8 grey levels), the distinct player positions (RAM bytes 42 and 43, x and y, in Montezuma's Revenge;
 other games: the distinct console RAM states, a coarse measure), the rooms (RAM byte 3 in Montezuma's Revenge), the
 lives lost, the game's episodes ended, the score, and the action histogram. For a PPO_GoCu model, also what its own
-curiosity module sees on both policies' steps: the distinct cells of its revisit key, and (Montezuma's Revenge) the
-mean raw r_gc it pays a step where the player stood still against a step where the player moved.
+curiosity module sees on both policies' steps (its episode is the game, as in training: a lost life does not end it):
+the distinct cells of its revisit key, the share of steps whose cell is new in their life and in their game (what the
+first-visit rule paid before and after a lost life stopped ending the curiosity's episode), and (Montezuma's Revenge)
+the mean raw r_gc it pays a step where the player stood still against a step where the player moved.
 """
 
 from __future__ import annotations
@@ -55,6 +57,9 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
     lives = ale.lives()
     paid: dict[str, list[float]] = {"still": [], "moving": []}  # raw r_gc of the steps where the player stood / moved
     module_cells: set[bytes] = set()
+    in_life: set[bytes] = set()  # the revisit cells met in the current life, and in the current game
+    in_game: set[bytes] = set()
+    new_in_life = new_in_game = 0
     previous = None
     if curiosity is not None:
         curiosity.begin_episodes(np.arange(1))
@@ -68,9 +73,19 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
         ram = ale.getRAM()
         place = (int(ram[3]), int(ram[42]), int(ram[43])) if montezuma else ram.tobytes()
         places.add(place)
+        game_over = "episode" in infos[0]  # Monitor: the end of a whole game
         if curiosity is not None:
-            r_gc = float(curiosity.step(reached, dones)[0][0])
-            module_cells.update(curiosity.revisit_key(curiosity.adapter.extract(reached)))
+            r_gc = float(curiosity.step(reached, dones & game_over)[0][0])
+            key = curiosity.revisit_key(curiosity.adapter.extract(reached))[0]
+            module_cells.add(key)
+            new_in_life += key not in in_life
+            new_in_game += key not in in_game
+            in_life.add(key)
+            in_game.add(key)
+            if dones[0]:  # a lost life (AtariWrapper's episode) or the game's end
+                in_life = set()
+            if game_over:
+                in_game = set()
             if montezuma and previous is not None:
                 paid["still" if place == previous else "moving"].append(r_gc)
         previous = None if dones[0] else place
@@ -78,7 +93,7 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
             rooms.add(int(ram[3]))
         lives_lost += ale.lives() < lives
         lives = ale.lives()
-        if "episode" in infos[0]:  # Monitor: the end of a whole game
+        if game_over:
             games += 1
             best = max(best, float(infos[0]["episode"]["r"]))
             score += float(infos[0]["episode"]["r"])
@@ -87,6 +102,7 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
            "score": score, "best": best, "actions": actions}
     if curiosity is not None:
         out["module_cells"] = len(module_cells)
+        out["first_visit_share_life"], out["first_visit_share_game"] = new_in_life / steps, new_in_game / steps
         for how, rewards in paid.items():
             out[f"r_gc_{how}"] = (float(np.mean(rewards)) if rewards else float("nan"), len(rewards))
     return out
@@ -117,7 +133,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             if curiosity is not None:
                 paid = "; ".join(f"raw r_gc {r[f'r_gc_{how}'][0]:.4f} a step over the {r[f'r_gc_{how}'][1]} steps the player {word}"
                                  for how, word in (("still", "stood still"), ("moving", "moved")) if r[f"r_gc_{how}"][1])
-                print(f"{'':>8}the agent's curiosity: {r['module_cells']} revisit cells ({curiosity.revisit_key.describe()})"
+                print(f"{'':>8}the agent's curiosity: {r['module_cells']} revisit cells ({curiosity.revisit_key.describe()}), new in their life on "
+                      f"{r['first_visit_share_life']:.3f} of the steps, in their game on {r['first_visit_share_game']:.3f}"
                       + (f"; {paid}" if paid else ""), flush=True)
         return out
 

@@ -15,6 +15,7 @@ from sb3_gocu.curiosity.revisits import (
     SimHashCell,
     cell_from_state,
     choose_cell,
+    first_visit_mask,
     first_visit_share,
 )
 
@@ -79,6 +80,9 @@ def test_the_first_visit_share_by_hand():
     interleaved = np.array([0, 1, 0, 1, 0, 1])  # two envs' episodes in step order: a b a | a c a
     assert first_visit_share(keys, interleaved) == pytest.approx(4 / 6)
     assert first_visit_share([b"a", b"a", b"a", b"a"], np.array([0, 1, 0, 1])) == pytest.approx(2 / 4)
+    assert first_visit_mask(keys, ids).tolist() == [True, True, False, True, True, False]
+    assert first_visit_mask(keys, interleaved).tolist() == [True, True, False, True, True, False]
+    assert first_visit_mask([], np.zeros(0)).shape == (0,) and np.isnan(first_visit_share([], np.zeros(0)))
 
 
 def test_the_chosen_cell_fires_where_bytes_never_repeat():

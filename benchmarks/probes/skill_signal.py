@@ -42,6 +42,7 @@ from stable_baselines3.common.vec_env import VecTransposeImage
 
 import sb3_gocu  # noqa: F401  (registers the GoCu ids)
 from sb3_gocu import PPO_GoCu
+from sb3_gocu.curiosity.revisits import first_visit_mask
 from sb3_gocu.curiosity.stores import observation_key
 
 BANDS = ((1, 5), (6, 10), (11, 15), (16, 20), (21, 30))
@@ -213,9 +214,7 @@ def phase_signal(model: PPO_GoCu, episodes: Episodes, rng: np.random.Generator,
     h_by: dict[str, list[np.ndarray]] = {name: [] for name in AGGREGATES}
     phase_of: list[np.ndarray] = []
     for i, (obs, phases, _) in enumerate(episodes):
-        keys = module.revisit_key(obs)
-        seen: set[bytes] = set()
-        paid = np.array([not (k in seen or seen.add(k)) for k in keys])
+        paid = first_visit_mask(module.revisit_key(obs), np.zeros(len(obs)))
         goals = goals_of(model, episodes, i, cfg.n_goals, rng)
         mastery = mastery_of(obs[paid], goals)
         for name, aggregate in AGGREGATES.items():

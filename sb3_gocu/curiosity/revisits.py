@@ -145,21 +145,24 @@ class SimHashCell:
 Cell = Union[ImageCell, SimHashCell]
 
 
-def first_visit_share(keys: list[bytes], episode_ids: np.ndarray) -> float:
-    """The share of steps whose key is new in its episode (the steps where the first-visit rule pays).
+def first_visit_mask(keys: list[bytes], episode_ids: np.ndarray) -> np.ndarray:
+    """Whether each step's key is new in its episode (the steps where the first-visit rule pays).
 
     :param keys: the key of each step, in step order within each episode
     :param episode_ids: the episode of each step (steps of several envs may interleave)"""
-    if len(keys) == 0:
-        return float("nan")
     seen: dict[int, set] = {}
-    new = 0
-    for key, episode in zip(keys, episode_ids.tolist()):
+    new = np.zeros(len(keys), dtype=bool)
+    for i, (key, episode) in enumerate(zip(keys, np.asarray(episode_ids).tolist())):
         visited = seen.setdefault(episode, set())
         if key not in visited:
             visited.add(key)
-            new += 1
-    return new / len(keys)
+            new[i] = True
+    return new
+
+
+def first_visit_share(keys: list[bytes], episode_ids: np.ndarray) -> float:
+    """The share of steps whose key is new in its episode; see :func:`first_visit_mask`."""
+    return float(first_visit_mask(keys, episode_ids).mean()) if len(keys) else float("nan")
 
 
 def default_cell(layout: str, scale: float, raw_shape: tuple[int, ...], low: np.ndarray | None = None,

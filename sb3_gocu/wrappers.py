@@ -208,9 +208,12 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
         self._index = np.array([self.env_index])
         self._lives = is_wrapped(env, EpisodicLifeEnv)
 
+    #: whether the env is wrapped in ``EpisodicLifeEnv`` (False for a wrapper pickled before it existed)
+    _lives: bool = False
+
     def _game_over(self) -> bool:
         """Whether the episode that just ended ended the game (not a life lost under ``EpisodicLifeEnv``)."""
-        return not getattr(self, "_lives", False) or bool(self.env.get_wrapper_attr("was_real_done"))
+        return not self._lives or bool(self.env.get_wrapper_attr("was_real_done"))
 
     @staticmethod
     def _batch(obs: Any) -> Any:

@@ -34,6 +34,7 @@ from stable_baselines3.common.env_util import make_atari_env
 from stable_baselines3.common.vec_env import VecFrameStack, VecTransposeImage
 
 from sb3_gocu import PPO_GoCu
+from sb3_gocu.curiosity.revisits import first_visit_share
 from sb3_gocu.curiosity.training import torch_threads
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # sample_efficiency (benchmarks/)
@@ -56,10 +57,10 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
     score = best = 0.0
     lives = ale.lives()
     paid: dict[str, list[float]] = {"still": [], "moving": []}  # raw r_gc of the steps where the player stood / moved
-    module_cells: set[bytes] = set()
-    in_life: set[bytes] = set()  # the revisit cells met in the current life, and in the current game
-    in_game: set[bytes] = set()
-    new_in_life = new_in_game = 0
+    keys: list[bytes] = []  # the revisit cell of each step, with the life and the game it was met in
+    life_ids: list[int] = []
+    game_ids: list[int] = []
+    life = game = 0
     previous = None
     if curiosity is not None:
         curiosity.begin_episodes(np.arange(1))
@@ -76,16 +77,11 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
         game_over = "episode" in infos[0]  # Monitor: the end of a whole game
         if curiosity is not None:
             r_gc = float(curiosity.step(reached, dones & game_over)[0][0])
-            key = curiosity.revisit_key(curiosity.adapter.extract(reached))[0]
-            module_cells.add(key)
-            new_in_life += key not in in_life
-            new_in_game += key not in in_game
-            in_life.add(key)
-            in_game.add(key)
-            if dones[0]:  # a lost life (AtariWrapper's episode) or the game's end
-                in_life = set()
-            if game_over:
-                in_game = set()
+            keys.append(curiosity.revisit_key(curiosity.adapter.extract(reached))[0])
+            life_ids.append(life)
+            game_ids.append(game)
+            life += int(dones[0])  # a lost life (AtariWrapper's episode) or the game's end
+            game += int(game_over)
             if montezuma and previous is not None:
                 paid["still" if place == previous else "moving"].append(r_gc)
         previous = None if dones[0] else place
@@ -101,8 +97,9 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
     out = {"places": len(places), "frames": len(frames), "cells": len(cells), "rooms": sorted(rooms), "lives_lost": lives_lost, "games": games,
            "score": score, "best": best, "actions": actions}
     if curiosity is not None:
-        out["module_cells"] = len(module_cells)
-        out["first_visit_share_life"], out["first_visit_share_game"] = new_in_life / steps, new_in_game / steps
+        out["module_cells"] = len(set(keys))
+        out["first_visit_share_life"] = first_visit_share(keys, np.array(life_ids))
+        out["first_visit_share_game"] = first_visit_share(keys, np.array(game_ids))
         for how, rewards in paid.items():
             out[f"r_gc_{how}"] = (float(np.mean(rewards)) if rewards else float("nan"), len(rewards))
     return out

@@ -50,6 +50,7 @@ from sb3_gocu import PAPER_PPO_KWARGS, PPO_GoCu
 from sb3_gocu.checkpoints import GoCuCheckpointCallback
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from run_records import cpu_model  # noqa: E402
 from throughput import zoo_model  # noqa: E402
 
 MB = 1024**2
@@ -99,7 +100,7 @@ class RSSSampler(BaseCallback):
 def machine() -> str:
     mem = psutil.virtual_memory().total / 1024**3
     return (
-        f"{platform.platform()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, {mem:.1f} GiB RAM; "
+        f"{platform.platform()}, {cpu_model()}, {os.cpu_count()} CPUs, {mem:.1f} GiB RAM; "
         f"python {platform.python_version()}, torch {th.__version__} ({th.get_num_threads()} threads), "
         f"numpy {np.__version__}, sb3-gocu {sb3_gocu.__version__}"
     )

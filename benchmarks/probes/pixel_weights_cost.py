@@ -18,6 +18,7 @@ import argparse
 import platform
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,6 +29,9 @@ import sb3_gocu  # noqa: F401  (registers the GoCu/ ids)
 from sb3_gocu import PPO_GoCu
 from sb3_gocu.curiosity import ConvVAE, PixelWeights, vae_loss
 from sb3_gocu.curiosity.stores import distinct_rows
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run_records (benchmarks/)
+from run_records import cpu_model  # noqa: E402
 
 
 def random_bank(n: int, seed: int) -> np.ndarray:
@@ -53,7 +57,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = p.parse_args(argv)
     th.set_num_threads(args.threads)
     print("command: python " + " ".join(sys.argv))
-    print(f"machine: {platform.machine()}, {platform.processor() or 'cpu'}, {args.threads} torch threads, torch {th.__version__}")
+    print(f"machine: {platform.machine()}, {cpu_model()}, {args.threads} torch threads, torch {th.__version__}")
 
     if args.model is not None:
         module = PPO_GoCu.load(args.model, device="cpu").curiosity

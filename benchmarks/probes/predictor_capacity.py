@@ -14,8 +14,8 @@ at 21-30: how well it tells near goals from far ones (the labels' own gap is abo
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -29,6 +29,9 @@ from sb3_gocu.curiosity.networks import MasteryPredictor, mastery_loss
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from skill_signal import first_visit_distance, play  # noqa: E402
 from sb3_gocu.curiosity.stores import observation_key  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run_records (benchmarks/)
+from run_records import cpu_model  # noqa: E402
 
 BANDS = ((0, 5), (6, 10), (11, 15), (16, 20), (21, 30))
 
@@ -144,7 +147,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     va = pairs(model, args.env, args.episodes[1], args.seed + 1000, args.val_pairs)
     mod.predictor.eval()
     tr["target"], va["target"] = mod.trainer.label_pairs(tr["s"], tr["g"], tr["d"]), mod.trainer.label_pairs(va["s"], va["g"], va["d"])
-    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.machine())
+    cpu = cpu_model()
     print("command: python benchmarks/probes/predictor_capacity.py " + " ".join(sys.argv[1:] if argv is None else argv))
     print(f"machine: {cpu}, torch {th.__version__}, {th.get_num_threads()} thread(s); checkpoint at {model.num_timesteps:,} steps; "
           f"train pairs {len(tr['d'])} from {tr['steps']} steps, validation pairs {len(va['d'])} from {va['steps']} other steps")

@@ -15,9 +15,10 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
-import platform
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch as th
@@ -25,6 +26,9 @@ import torch as th
 from sb3_gocu import PPO_GoCu
 from sb3_gocu.curiosity import GoalCuriosityModule
 from sb3_gocu.curiosity.reachability import QualityPairs
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run_records (benchmarks/)
+from run_records import cpu_model  # noqa: E402
 
 
 def main() -> None:
@@ -62,7 +66,7 @@ def main() -> None:
         score.append(time.perf_counter() - t0)
     print(f"{args.checkpoint}: {module.n_recorded_steps} recorded steps, {len(module.trajectories)} states in the store, "
           f"{module.goal_buffer.size} goals; {args.repeats} alternating repeats, {args.threads} torch thread(s), "
-          f"CPU {platform.processor() or platform.machine()}")
+          f"CPU {cpu_model()}")
     for labels, ts in times.items():
         far, goals, steps = auc[labels]
         print(f"pair_labels={labels}: update {statistics.median(ts):.3f} s (median), {steps:.0f} Adam steps, auc_far {far:.3f}, auc_goals {goals:.3f}")

@@ -23,8 +23,9 @@ the later frames (what a budget on the VAE's updates costs the predictor).
 from __future__ import annotations
 
 import argparse
-import platform
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch as th
@@ -35,6 +36,9 @@ from sb3_gocu.curiosity.networks import MasteryPredictor, mastery_loss
 from sb3_gocu.curiosity.reachability import auc
 from sb3_gocu.curiosity.reward import complexity_score, mastered_probability
 from sb3_gocu.curiosity.stores import observation_key
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run_records (benchmarks/)
+from run_records import cpu_model  # noqa: E402
 
 
 def collect(env_id: str, steps: int, seed: int) -> list[np.ndarray]:
@@ -172,7 +176,7 @@ def main() -> None:
         return th.cat(s), th.cat(gg), target
 
     print(f"test pairs: {len(near[0])} near (<= {args.near}), {len(far[0])} far (>= {D}), {len(goals[1])} goal-like; "
-          f"CPU {platform.processor() or platform.machine()}, {args.threads} torch thread(s), seed {args.seed}")
+          f"CPU {cpu_model()}, {args.threads} torch thread(s), seed {args.seed}")
     print("variant | Adam steps | auc_far | auc_goals | mean m near / far | seconds")
     for variant in args.variants:
         th.manual_seed(args.seed)

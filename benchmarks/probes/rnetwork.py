@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -39,6 +38,9 @@ from sb3_gocu.curiosity.stores import observation_key
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import skill_signal  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run_records (benchmarks/)
+from run_records import cpu_model  # noqa: E402
 
 Episode = tuple[np.ndarray, np.ndarray, bool]
 
@@ -171,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 def run(args: argparse.Namespace, argv: Sequence[str] | None) -> dict[str, Any]:
     th.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
-    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
+    cpu = cpu_model()
     print("command: python benchmarks/probes/rnetwork.py " + " ".join(sys.argv[1:] if argv is None else argv))
     print(f"machine: {cpu}, torch {th.__version__}, {args.threads} thread(s); seed {args.seed}")
     model = PPO_GoCu.load(args.model, device="cpu")

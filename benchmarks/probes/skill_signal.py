@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -44,6 +43,9 @@ import sb3_gocu  # noqa: F401  (registers the GoCu ids)
 from sb3_gocu import PPO_GoCu
 from sb3_gocu.curiosity.revisits import first_visit_mask
 from sb3_gocu.curiosity.stores import observation_key
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run_records (benchmarks/)
+from run_records import cpu_model  # noqa: E402
 
 BANDS = ((1, 5), (6, 10), (11, 15), (16, 20), (21, 30))
 #: the phases of a step (``info["task_phase"]``, with the door-open phase split at the wall)
@@ -267,7 +269,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         "update holds a predictor trained on the old embedding, until the next predictor update")
     args = p.parse_args(argv)
     th.set_num_threads(args.threads)
-    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
+    cpu = cpu_model()
     print("command: python benchmarks/probes/skill_signal.py " + " ".join(sys.argv[1:] if argv is None else argv))
     print(f"machine: {cpu}, torch {th.__version__}, {args.threads} thread(s); seed {args.seed}")
     results: dict[str, Any] = {}

@@ -21,7 +21,10 @@ Monitor reports stay extrinsic.
 
 A life lost under SB3's ``EpisodicLifeEnv`` (``AtariWrapper``'s ``terminal_on_life_loss``) ends the learner's episode,
 not the curiosity's: the first-visit memory, the K goals and the reachability spans last the whole game, so that
-losing a life does not pay the game's cells anew.
+losing a life does not pay the game's cells anew. :class:`GoCuWrapper` reads ``EpisodicLifeEnv.was_real_done`` at the
+step; :class:`GoCuVecEnvWrapper` sees the step only after the VecEnv's reset, whose ``FireResetEnv`` steps have
+overwritten that flag, so it reads the game's end where SB3's ``evaluate_policy`` does: in the ``info["episode"]`` of
+the ``Monitor`` beneath ``EpisodicLifeEnv`` (``make_atari_env`` and rl-zoo3 put it there).
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.atari_wrappers import EpisodicLifeEnv
 from stable_baselines3.common.env_util import is_wrapped
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper, VecMonitor, is_vecenv_wrapped
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
 from sb3_gocu.curiosity import GoalCuriosityModule
@@ -137,10 +141,25 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         VecEnvWrapper.__init__(self, venv)
         self._setup_gocu(venv.observation_space, module, mode, intrinsic_coef, curiosity_kwargs, centred)
         self.module.ensure_envs(self.num_envs)
+        self._lives = self._find_lives()
 
     #: per env, whether it is wrapped in ``EpisodicLifeEnv`` (None until the first step: env stacks pickled before it
     #: existed load without it)
     _lives: np.ndarray | None = None
+
+    def _find_lives(self) -> np.ndarray:
+        """Per env, whether it is wrapped in ``EpisodicLifeEnv``; such envs need a ``Monitor`` beneath it, which tells
+        the game's end, and no ``VecMonitor`` in between (it ends an episode at every lost life)."""
+        lives = np.array(self.venv.env_is_wrapped(EpisodicLifeEnv), dtype=bool)
+        if lives.any():
+            unmonitored = np.flatnonzero(lives & ~np.array(self.venv.env_is_wrapped(Monitor), dtype=bool))
+            if len(unmonitored) or is_vecenv_wrapped(self.venv, VecMonitor):
+                raise ValueError(
+                    f"venv: env {int(unmonitored[0]) if len(unmonitored) else 0} is wrapped in EpisodicLifeEnv, and GoCu tells "
+                    "a game's end from a lost life by the info['episode'] of a Monitor beneath it: wrap each env in Monitor "
+                    "before AtariWrapper (make_vec_env, make_atari_env and rl-zoo3 do), not in a VecMonitor"
+                )
+        return lives
 
     def reset(self) -> Any:
         obs = self.venv.reset()
@@ -148,13 +167,14 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
         self._episode_sums.clear()
         return obs
 
-    def _games_over(self, dones: np.ndarray) -> np.ndarray:
-        """``dones`` less the lives lost under ``EpisodicLifeEnv`` (its ``was_real_done``: the game went on)."""
+    def _games_over(self, dones: np.ndarray, infos: list[dict]) -> np.ndarray:
+        """``dones`` less the lives lost under ``EpisodicLifeEnv``: there the game is over where the Monitor beneath it
+        ended an episode (``EpisodicLifeEnv.was_real_done`` was overwritten by the VecEnv's reset)."""
         if self._lives is None:
-            self._lives = np.array(self.venv.env_is_wrapped(EpisodicLifeEnv), dtype=bool)
+            self._lives = self._find_lives()
         ends = dones.copy()
         for i in np.flatnonzero(dones & self._lives):
-            ends[i] = bool(self.venv.get_attr("was_real_done", indices=[int(i)])[0])
+            ends[i] = "episode" in infos[i]
         return ends
 
     def step_wait(self) -> VecEnvStepReturn:
@@ -174,7 +194,7 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
                     for i in done_idx:
                         reached[i] = infos[i]["terminal_observation"]
         centre = self._centre()
-        raw, normalized = self.module.step(reached, self._games_over(dones) if dones.any() else dones)
+        raw, normalized = self.module.step(reached, self._games_over(dones, infos) if dones.any() else dones)
         rewards = np.array([self._report(info, rewards[i], raw[i], normalized[i], i, centre) for i, info in enumerate(infos)], dtype=np.float32)
         return obs, rewards, dones, infos
 
@@ -210,10 +230,8 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
 
     #: whether the env is wrapped in ``EpisodicLifeEnv`` (False for a wrapper pickled before it existed)
     _lives: bool = False
-
-    def _game_over(self) -> bool:
-        """Whether the episode that just ended ended the game (not a life lost under ``EpisodicLifeEnv``)."""
-        return not self._lives or bool(self.env.get_wrapper_attr("was_real_done"))
+    #: whether the last step ended the game, not just a life (True before the first step: the first reset begins one)
+    _game_over: bool = True
 
     @staticmethod
     def _batch(obs: Any) -> Any:
@@ -223,14 +241,16 @@ class GoCuWrapper(_RewardReport, gym.Wrapper):
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict]:
         obs, info = self.env.reset(**kwargs)
-        if self._game_over():  # after a lost life the game, and the curiosity's episode, go on
+        if self._game_over:  # after a lost life the game, and the curiosity's episode, go on
             self.module.begin_episodes(self._index)
             self._episode_sums.clear()
         return obs, info
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         obs, reward, terminated, truncated, info = self.env.step(action)
-        done = bool(terminated or truncated) and self._game_over()
+        # read now: a reset's FireResetEnv steps overwrite was_real_done
+        self._game_over = not self._lives or bool(self.env.get_wrapper_attr("was_real_done"))
+        done = bool(terminated or truncated) and self._game_over
         centre = self._centre()
         raw, normalized = self.module.step(self._batch(obs), np.array([done]), self._index)
         return obs, self._report(info, reward, raw[0], normalized[0], centre=centre), terminated, truncated, info

@@ -45,6 +45,29 @@ class ChainEnv(gym.Env):
         return self._obs(), float(terminated), terminated, truncated, {}
 
 
+class LivesEnv(ChainEnv):
+    """ChainEnv with Atari's lives (``unwrapped.ale.lives()``, as ``EpisodicLifeEnv`` reads them): one lost every 4
+    steps, the game over with the third; action 1 is FIRE (right), 2 left, as ``FireResetEnv`` wants."""
+
+    def __init__(self):
+        super().__init__(length=50, max_steps=100)
+        self.action_space = spaces.Discrete(3)
+        self.lives = 3
+        self.ale = type("Ale", (), {"lives": lambda _: self.lives})()
+
+    def get_action_meanings(self):
+        return ["NOOP", "FIRE", "LEFT"]
+
+    def reset(self, *, seed=None, options=None):
+        self.lives = 3
+        return super().reset(seed=seed)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        self.lives -= self.t % 4 == 0
+        return obs, reward, terminated or self.lives == 0, truncated, info
+
+
 @pytest.fixture(autouse=True)
 def _one_thread():
     th.set_num_threads(1)

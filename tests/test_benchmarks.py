@@ -11,7 +11,7 @@ import torch as th
 
 from sb3_gocu import PPO_GoCu
 
-from conftest import TINY_IMAGE_CURIOSITY, load_script
+from conftest import TINY_IMAGE_CURIOSITY, LivesEnv, load_script
 
 ROLLOUT = 4 * 128
 
@@ -772,6 +772,22 @@ def test_revisit_share_probe_measures_each_key_on_both_policies(two_runs):
         assert shares["episodes"] >= 1
     with pytest.raises(SystemExit):
         probe.main(["--envs", env, "--model", f"GoCu/DoorKey-8x8-v0={model}"])  # a model of an env not probed
+
+
+def test_revisit_share_probe_counts_a_game_as_one_episode():
+    """benchmarks/probes/revisit_share.py measures the curiosity's episodes: under EpisodicLifeEnv a lost life is a done
+    but not a new episode; the ids change where the Monitor beneath ends a game, and only there."""
+    from stable_baselines3.common.atari_wrappers import EpisodicLifeEnv
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from sb3_gocu.curiosity.observations import ObservationAdapter
+
+    probe = load_script("revisit_share", "benchmarks/probes/revisit_share.py")
+    venv = DummyVecEnv([lambda: EpisodicLifeEnv(Monitor(LivesEnv()))])
+    _, ids, _ = probe.rollout(venv, ObservationAdapter(venv.observation_space), 30)
+    # a game is 10 agent steps (lives of 4, 4 and 2 steps, the 2 no-op steps of EpisodicLifeEnv's resets besides)
+    assert ids.tolist() == [0] * 10 + [1] * 10 + [2] * 10
 
 
 def test_atari_behaviour_probe_reports_what_a_ppo_gocu_agents_curiosity_pays(tmp_path):

@@ -3,7 +3,6 @@
 import threading
 
 import numpy as np
-from gymnasium import spaces
 import pytest
 import torch as th
 from stable_baselines3 import A2C, PPO
@@ -14,7 +13,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
 from sb3_gocu import PAPER_PPO_KWARGS, GoalCuriosityModule, GoCuCallback, GoCuVecEnvWrapper, GoCuWrapper, PPO_GoCu
 
-from conftest import SMALL_CURIOSITY, ChainEnv, record_steps
+from conftest import SMALL_CURIOSITY, ChainEnv, LivesEnv, record_steps
 
 
 def chain_venv(n_envs=2, seed=0):
@@ -118,29 +117,6 @@ def test_ppo_settings_default_to_the_papers_and_given_ones_win():
     # given ones win, by keyword or by position (learning_rate, n_steps are PPO's first two after env)
     model = PPO_GoCu("MlpPolicy", chain_venv(), 3e-4, 64, batch_size=32, ent_coef=0.0, curiosity_kwargs=SMALL_CURIOSITY)
     assert settings(model) == {**PAPER_PPO_KWARGS, "learning_rate": 3e-4, "n_steps": 64, "batch_size": 32, "ent_coef": 0.0}
-
-
-class LivesEnv(ChainEnv):
-    """ChainEnv with Atari's lives (``unwrapped.ale.lives()``, as ``EpisodicLifeEnv`` reads them): one lost every 4
-    steps, the game over with the third; action 1 is FIRE (right), 2 left, as ``FireResetEnv`` wants."""
-
-    def __init__(self):
-        super().__init__(length=50, max_steps=100)
-        self.action_space = spaces.Discrete(3)
-        self.lives = 3
-        self.ale = type("Ale", (), {"lives": lambda _: self.lives})()
-
-    def get_action_meanings(self):
-        return ["NOOP", "FIRE", "LEFT"]
-
-    def reset(self, *, seed=None, options=None):
-        self.lives = 3
-        return super().reset(seed=seed)
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = super().step(action)
-        self.lives -= self.t % 4 == 0
-        return obs, reward, terminated or self.lives == 0, truncated, info
 
 
 @pytest.mark.parametrize("fire", [False, True])

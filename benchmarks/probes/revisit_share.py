@@ -61,7 +61,8 @@ def make_env(env_id: str, n_envs: int, seed: int) -> tuple[Any, ObservationAdapt
 
 def rollout(venv: Any, adapter: ObservationAdapter, steps: int, model: Any = None, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
     """``steps`` vector steps of the random policy (or ``model``'s): the raw observations reached (the terminal one
-    where an episode ended), their episode ids, and the seconds the env's steps took."""
+    where an episode ended), their episode ids, and the seconds the env's steps took. An episode is the curiosity's: it
+    ends where the Monitor beneath the wrappers ends one (a whole game on Atari, not a life)."""
     venv.action_space.seed(seed)
     n = venv.num_envs
     obs = venv.reset()
@@ -81,8 +82,9 @@ def rollout(venv: Any, adapter: ObservationAdapter, steps: int, model: Any = Non
             reached[e] = infos[e]["terminal_observation"]
         frames.append(adapter.extract(reached))
         episodes.append(ids.copy())
-        ids[dones] = next_id + np.arange(int(dones.sum()))
-        next_id += int(dones.sum())
+        ends = dones & np.array(["episode" in info for info in infos])
+        ids[ends] = next_id + np.arange(int(ends.sum()))
+        next_id += int(ends.sum())
     return np.concatenate(frames), np.concatenate(episodes), env_time / steps
 
 

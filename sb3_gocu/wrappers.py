@@ -61,6 +61,17 @@ def _make_module(
     return module
 
 
+def _monitor_beneath_lives(env: gym.Env) -> bool:
+    """Whether a ``Monitor`` lies beneath the env's ``EpisodicLifeEnv`` (so that it ends episodes at game over only)."""
+    lives = False
+    while isinstance(env, gym.Wrapper):
+        lives = lives or isinstance(env, EpisodicLifeEnv)
+        if lives and isinstance(env, Monitor):
+            return True
+        env = env.env
+    return False
+
+
 class _RewardReport:
     """What both wrappers share: settings, checks, and how r_gc is reported and added."""
 
@@ -149,15 +160,20 @@ class GoCuVecEnvWrapper(_RewardReport, VecEnvWrapper):
 
     def _find_lives(self) -> np.ndarray:
         """Per env, whether it is wrapped in ``EpisodicLifeEnv``; such envs need a ``Monitor`` beneath it, which tells
-        the game's end, and no ``VecMonitor`` in between (it ends an episode at every lost life)."""
+        the game's end (one above, or a ``VecMonitor``, ends an episode at every lost life)."""
         lives = np.array(self.venv.env_is_wrapped(EpisodicLifeEnv), dtype=bool)
         if lives.any():
-            unmonitored = np.flatnonzero(lives & ~np.array(self.venv.env_is_wrapped(Monitor), dtype=bool))
+            base = self.venv.unwrapped
+            if isinstance(base, DummyVecEnv):  # the order of the wrappers can be read
+                monitored = np.array([_monitor_beneath_lives(e) for e in base.envs], dtype=bool)
+            else:
+                monitored = np.array(self.venv.env_is_wrapped(Monitor), dtype=bool)
+            unmonitored = np.flatnonzero(lives & ~monitored)
             if len(unmonitored) or is_vecenv_wrapped(self.venv, VecMonitor):
                 raise ValueError(
                     f"venv: env {int(unmonitored[0]) if len(unmonitored) else 0} is wrapped in EpisodicLifeEnv, and GoCu tells "
                     "a game's end from a lost life by the info['episode'] of a Monitor beneath it: wrap each env in Monitor "
-                    "before AtariWrapper (make_vec_env, make_atari_env and rl-zoo3 do), not in a VecMonitor"
+                    "before AtariWrapper (make_vec_env, make_atari_env and rl-zoo3 do), not after it nor in a VecMonitor"
                 )
         return lives
 

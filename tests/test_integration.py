@@ -145,11 +145,13 @@ def test_a_lost_life_ends_the_learners_episode_not_the_curiositys(vectorised, fi
 
 @pytest.mark.filterwarnings("ignore:The environment is already wrapped with a `Monitor`")
 def test_lives_without_a_monitor_beneath_are_refused():
-    """GoCuVecEnvWrapper tells a game's end by the Monitor beneath EpisodicLifeEnv: without one (or with a VecMonitor,
-    which ends an episode at every lost life) it says so at construction, naming the fix."""
+    """GoCuVecEnvWrapper tells a game's end by the Monitor beneath EpisodicLifeEnv: without one (or with one above, or a
+    VecMonitor, which end an episode at every lost life) it says so at construction, naming the fix."""
     with pytest.raises(ValueError, match="Monitor before AtariWrapper"):
         GoCuVecEnvWrapper(DummyVecEnv([lambda: EpisodicLifeEnv(LivesEnv())]), curiosity_kwargs=SMALL_CURIOSITY)
-    with pytest.raises(ValueError, match="not in a VecMonitor"):
+    with pytest.raises(ValueError, match="not after it"):  # as SB3 wraps a gym env given to PPO: Monitor on top
+        GoCuVecEnvWrapper(DummyVecEnv([lambda: Monitor(EpisodicLifeEnv(LivesEnv()))]), curiosity_kwargs=SMALL_CURIOSITY)
+    with pytest.raises(ValueError, match="nor in a VecMonitor"):
         GoCuVecEnvWrapper(VecMonitor(DummyVecEnv([lambda: EpisodicLifeEnv(Monitor(LivesEnv()))])), curiosity_kwargs=SMALL_CURIOSITY)
     GoCuVecEnvWrapper(DummyVecEnv([lambda: EpisodicLifeEnv(Monitor(LivesEnv()))]), curiosity_kwargs=SMALL_CURIOSITY)
 

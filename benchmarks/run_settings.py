@@ -44,12 +44,13 @@ def zoo_settings(family: str, env: str) -> dict[str, Any]:
 
 
 def zoo_overrides(args: argparse.Namespace, algo: str, entry: dict[str, Any]) -> dict[str, Any]:
-    """With --zoo: the zoo entry's settings the command changes (``--curiosity-kwargs``, ``--goal-strategy``,
-    ``--n-goals`` merged into a ppo_gocu entry's ``curiosity_kwargs``)."""
+    """With --zoo: the zoo entry's settings the command changes (``--model-kwargs``; ``--curiosity-kwargs``,
+    ``--goal-strategy``, ``--n-goals`` merged into a ppo_gocu entry's ``curiosity_kwargs``)."""
+    out = dict(json.loads(args.model_kwargs))
     changed = curiosity_kwargs(args)
-    if algo != "ppo_gocu" or not changed:
-        return {}
-    return {"curiosity_kwargs": {**entry.get("curiosity_kwargs", {}), **changed}}
+    if algo == "ppo_gocu" and changed:
+        out["curiosity_kwargs"] = {**entry.get("curiosity_kwargs", {}), **changed}
+    return out
 
 
 def model_settings(args: argparse.Namespace, algo: str) -> dict[str, Any]:

@@ -566,7 +566,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-envs", type=int, default=N_ENVS)
     p.add_argument("--n-steps", type=int, default=PPO_SETTINGS["n_steps"])
     p.add_argument("--batch-size", type=int, default=PPO_SETTINGS["batch_size"])
-    p.add_argument("--model-kwargs", default="{}", help="JSON dict overriding the a2c / dqn settings of their zoo file (for tests)")
+    p.add_argument("--model-kwargs", default="{}", help="JSON dict overriding model settings of the zoo file: a2c / dqn's, or with --zoo any entry's")
     p.add_argument("--zoo", action=argparse.BooleanOptionalAction, default=None,
                    help="build env and model as the zoo launcher does, from sb3_gocu/hyperparams/<algo>.yml (ppo and ppo_gocu; "
                    "--n-envs, --n-steps, --batch-size and --intrinsic-coef then come from the file; default: for ALE/... ids)")

@@ -687,12 +687,15 @@ def test_atari_runs_take_the_zoo_settings_and_count_rooms(se, tmp_path):
     resumed run continues those counts, and the summary shows Table 3's measures."""
     out = tmp_path / "atari"
     args = ["--env", "ALE/MontezumaRevenge-v5", "--algos", "ppo_gocu", "--seeds", "0", "--out", str(out),
-            "--checkpoint-freq", "1024", "--curiosity-kwargs", '{"pretrain_steps": 256, "vae_epochs": 1}', "--quiet"]
+            "--checkpoint-freq", "1024", "--curiosity-kwargs", '{"pretrain_steps": 256, "vae_epochs": 1}', "--quiet",
+            "--model-kwargs", '{"intrinsic_episodic": true}']
     se.main([*args, "--timesteps", "2048"])
     state = json.loads(sorted((out / "checkpoints" / "ppo_gocu_seed0").glob("state_*.json"))[-1].read_text())
     zoo = state["config"]["zoo"]
     assert zoo["n_envs"] == 8 and zoo["frame_stack"] == 4 and zoo["curiosity_kwargs"]["image_channels"] == 1
     assert zoo["curiosity_kwargs"]["pretrain_steps"] == 256  # the command's setting merged into the file's
+    assert zoo["intrinsic_episodic"] is True  # and the model's, as the zoo's --hyperparams
+    assert PPO_GoCu.load(out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip", device="cpu").intrinsic_episodic
     rows = read(out / "ppo_gocu_seed0.csv")
     assert [int(r["steps"]) for r in rows] == [1024, 2048]  # 8 envs x 128 steps per rollout
     summary = se.main([*args, "--timesteps", "3072"])  # resumed from the 2048-step checkpoint
@@ -818,6 +821,10 @@ def test_atari_behaviour_probe_reports_what_a_ppo_gocu_agents_curiosity_pays(tmp
         (still, n_still), (moving, n_moving) = r["r_gc_still"], r["r_gc_moving"]
         assert n_still + n_moving == 64 - 1 - r["lives_lost"]
         assert all(0.0 <= value <= 0.1 + 1e-6 for value, n in ((still, n_still), (moving, n_moving)) if n)  # [0, alpha / delta]
+    # the agent's curiosity value, read at every step: where a game began (the first step at least), a life, or neither
+    v_gc = result["agent"]["v_gc"]
+    assert sum(n for _, n in v_gc.values()) == 64 and 1 <= v_gc["game"][1] <= 1 + result["agent"]["games"]
+    assert v_gc["life"][1] <= result["agent"]["lives_lost"] and "v_gc" not in result["random"]
 
 
 def test_skill_signal_phase_mastery_worked_out_by_hand():

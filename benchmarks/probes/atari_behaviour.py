@@ -13,7 +13,9 @@ lives lost, the game's episodes ended, the score, and the action histogram. For 
 curiosity module sees on both policies' steps (its episode is the game, as in training: a lost life does not end it):
 the distinct cells of its revisit key, the share of steps whose cell is new in their life and in their game (what the
 first-visit rule paid before and after a lost life stopped ending the curiosity's episode), and (Montezuma's Revenge)
-the mean raw r_gc it pays a step where the player stood still against a step where the player moved.
+the mean raw r_gc it pays a step where the player stood still against a step where the player moved; and, on the
+agent's steps, its curiosity head's value V_gc where a game begins, where a life begins after a lost one and elsewhere
+(the curiosity stream runs across episode ends: a V_gc higher where a game begins says that ending the game pays).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import ale_py
 import cv2
 import gymnasium as gym
 import numpy as np
+import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_atari_env
 from stable_baselines3.common.vec_env import VecFrameStack, VecTransposeImage
@@ -62,9 +65,15 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
     game_ids: list[int] = []
     life = game = 0
     previous = None
+    # the curiosity head's value V_gc where a game begins, where a life begins after a lost one, and elsewhere
+    values: dict[str, list[float]] = {"game": [], "life": [], "on": []}
+    starting = "game"
     if curiosity is not None:
         curiosity.begin_episodes(np.arange(1))
     for _ in range(steps):
+        if curiosity is not None and model is not None:
+            with th.no_grad():
+                values[starting].append(float(model.policy.predict_values(model.policy.obs_to_tensor(obs)[0])[0, 1]))
         action = model.predict(obs, deterministic=False)[0] if model is not None else np.array([rng.integers(env.action_space.n)])
         actions[int(action[0])] += 1
         obs, _, dones, infos = env.step(action)
@@ -89,6 +98,7 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
             rooms.add(int(ram[3]))
         lives_lost += ale.lives() < lives
         lives = ale.lives()
+        starting = "game" if game_over else "life" if dones[0] else "on"
         if game_over:
             games += 1
             best = max(best, float(infos[0]["episode"]["r"]))
@@ -102,6 +112,8 @@ def play(env_id: str, model: Any, steps: int, seed: int, curiosity: Any = None) 
         out["first_visit_share_game"] = first_visit_share(keys, np.array(game_ids))
         for how, rewards in paid.items():
             out[f"r_gc_{how}"] = (float(np.mean(rewards)) if rewards else float("nan"), len(rewards))
+        if model is not None:
+            out["v_gc"] = {at: (float(np.mean(v)) if v else float("nan"), len(v)) for at, v in values.items()}
     return out
 
 
@@ -133,6 +145,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 print(f"{'':>8}the agent's curiosity: {r['module_cells']} revisit cells ({curiosity.revisit_key.describe()}), new in their life on "
                       f"{r['first_visit_share_life']:.3f} of the steps, in their game on {r['first_visit_share_game']:.3f}"
                       + (f"; {paid}" if paid else ""), flush=True)
+                if "v_gc" in r:
+                    print(f"{'':>8}its curiosity head's value V_gc: " + ", ".join(
+                        f"{v:.3f} over the {n} steps {where}" for (v, n), where in zip(r["v_gc"].values(),
+                        ("a game began", "a life began after a lost one", "the life went on")) if n), flush=True)
         return out
 
 

@@ -688,14 +688,14 @@ def test_atari_runs_take_the_zoo_settings_and_count_rooms(se, tmp_path):
     out = tmp_path / "atari"
     args = ["--env", "ALE/MontezumaRevenge-v5", "--algos", "ppo_gocu", "--seeds", "0", "--out", str(out),
             "--checkpoint-freq", "1024", "--curiosity-kwargs", '{"pretrain_steps": 256, "vae_epochs": 1}', "--quiet",
-            "--model-kwargs", '{"intrinsic_episodic": true}']
+            "--model-kwargs", '{"intrinsic_episodic": false}']
     se.main([*args, "--timesteps", "2048"])
     state = json.loads(sorted((out / "checkpoints" / "ppo_gocu_seed0").glob("state_*.json"))[-1].read_text())
     zoo = state["config"]["zoo"]
     assert zoo["n_envs"] == 8 and zoo["frame_stack"] == 4 and zoo["curiosity_kwargs"]["image_channels"] == 1
     assert zoo["curiosity_kwargs"]["pretrain_steps"] == 256  # the command's setting merged into the file's
-    assert zoo["intrinsic_episodic"] is True  # and the model's, as the zoo's --hyperparams
-    assert PPO_GoCu.load(out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip", device="cpu").intrinsic_episodic
+    assert zoo["intrinsic_episodic"] is False  # and the model's, as the zoo's --hyperparams (the file's is True)
+    assert not PPO_GoCu.load(out / "checkpoints" / "ppo_gocu_seed0" / "model_2048.zip", device="cpu").intrinsic_episodic
     rows = read(out / "ppo_gocu_seed0.csv")
     assert [int(r["steps"]) for r in rows] == [1024, 2048]  # 8 envs x 128 steps per rollout
     summary = se.main([*args, "--timesteps", "3072"])  # resumed from the 2048-step checkpoint

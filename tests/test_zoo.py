@@ -190,6 +190,7 @@ def test_every_entry_builds_its_model(conf, tmp_path):
             assert mode == ("separate" if conf == "ppo_gocu" else "sum")
             if conf == "ppo_gocu":
                 assert module is model.curiosity and model.intrinsic_coef == 0.25
+                assert model.intrinsic_episodic == atari  # the stream stops at each lost life on Atari only
                 # the module embeds the newest frame of the stack on Atari, averaged down to 42x42; the RGB view elsewhere
                 assert module.adapter.input_shape == ((1, 42, 42) if atari else (3, 32, 32))
             else:

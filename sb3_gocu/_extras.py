@@ -14,7 +14,7 @@ import importlib
 #: Gymnasium id prefix -> (modules its environments need, the extra that brings them)
 ENV_EXTRAS: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ("GoCu/DoorKey-", ("sb3_gocu.envs.minigrid_envs",), "minigrid"),
-    ("GoCu/VisualSawyer", ("sb3_gocu.envs.sawyer_envs",), "robotics"),
+    ("GoCu/VisualSawyer", ("sb3_gocu.envs.sawyer_envs",), "mujoco"),
     ("GoCu/Visual", ("sb3_gocu.envs.mujoco_envs",), "mujoco"),
     ("ALE/", ("ale_py", "cv2"), "atari"),
 )

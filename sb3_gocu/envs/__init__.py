@@ -7,16 +7,17 @@ importing ``minigrid`` or ``mujoco``: the entry points are strings, resolved by 
   MiniGrid DoorKey, observed as a 32x32x3 uint8 RGB image of the agent's view (see ``minigrid_envs``).
 - ``GoCu/VisualReacher-v0``, ``GoCu/VisualPusher-v0``: Reacher-v5 / Pusher-v5 observed as 32x32x3
   uint8 renders with a sparse success reward (see ``mujoco_envs``).
-- ``GoCu/VisualSawyerReacher-v0``, ``GoCu/VisualSawyerDoorHook-v0``, ``GoCu/VisualSawyerPusher-v0``,
-  ``GoCu/VisualSawyerMultiObjectPusher-v0``, ``GoCu/VisualSawyerPickAndPlace-v0``: the paper's Sawyer tasks on Meta-World, 32x32x3 uint8 frames, sparse
-  success reward (see ``sawyer_envs``).
+- ``GoCu/VisualSawyerReacher-v1``, ``GoCu/VisualSawyerDoorHook-v1``, ``GoCu/VisualSawyerPusher-v1``,
+  ``GoCu/VisualSawyerMultiObjectPusher-v1``, ``GoCu/VisualSawyerPickAndPlace-v1``: the paper's Sawyer tasks as it defines
+  them (a hand held to a plane or a small box, small workspaces, short episodes), 32x32x3 uint8 frames, sparse success
+  reward (see ``sawyer_envs``).
 - Atari: the ale-py ids in :data:`ATARI_HARD_EXPLORATION` are used directly (nothing to register).
 
 Because registration happens on import, ``gym.make("sb3_gocu.envs:GoCu/DoorKey-8x8-v0")`` works in
 a fresh process (e.g. a ``SubprocVecEnv`` worker started with ``spawn``/``forkserver``).
 
 Making the envs needs an extra of the package: ``[minigrid]`` (DoorKey), ``[mujoco]`` (VisualReacher,
-VisualPusher), ``[robotics]`` (VisualSawyer*) or ``[atari]`` (ale-py); without it, ``gym.make`` raises a ``ModuleNotFoundError`` naming the extra.
+VisualPusher, VisualSawyer*) or ``[atari]`` (ale-py); without it, ``gym.make`` raises a ``ModuleNotFoundError`` naming the extra.
 """
 
 from __future__ import annotations
@@ -44,13 +45,13 @@ DOORKEY_SIZES: tuple[int, ...] = (5, 8, 11, 16)
 DOORKEY_IDS: tuple[str, ...] = tuple(f"GoCu/DoorKey-{n}x{n}-v0" for n in DOORKEY_SIZES)
 #: Registered MuJoCo ids (Gymnasium's Reacher and Pusher).
 MUJOCO_IDS: tuple[str, ...] = ("GoCu/VisualReacher-v0", "GoCu/VisualPusher-v0")
-#: Registered ids of the paper's Sawyer tasks on Meta-World (:mod:`sb3_gocu.envs.sawyer_envs`), with their episode lengths.
+#: Registered ids of the paper's Sawyer tasks (:mod:`sb3_gocu.envs.sawyer_envs`), with their episode lengths.
 SAWYER_LENGTHS: dict[str, int] = {
-    "GoCu/VisualSawyerReacher-v0": 150,
-    "GoCu/VisualSawyerDoorHook-v0": 150,
-    "GoCu/VisualSawyerPusher-v0": 150,
-    "GoCu/VisualSawyerMultiObjectPusher-v0": 200,
-    "GoCu/VisualSawyerPickAndPlace-v0": 150,
+    "GoCu/VisualSawyerReacher-v1": 50,
+    "GoCu/VisualSawyerDoorHook-v1": 100,
+    "GoCu/VisualSawyerPusher-v1": 100,
+    "GoCu/VisualSawyerMultiObjectPusher-v1": 150,
+    "GoCu/VisualSawyerPickAndPlace-v1": 50,
 }
 SAWYER_IDS: tuple[str, ...] = tuple(SAWYER_LENGTHS)
 #: All ids registered by :func:`register_envs`.

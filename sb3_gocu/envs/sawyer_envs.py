@@ -1,22 +1,19 @@
-"""The paper's Sawyer manipulation tasks (Sect. 5.2, Table 2) on Meta-World, seen as 32x32 RGB frames, with a sparse reward.
+"""The paper's five Sawyer tasks (Sect. 5.2, Table 2) as the paper defines them, seen as 32x32 RGB frames.
 
-Import this module only when one of the ``GoCu/VisualSawyer*`` ids is made (they use string entry points): it imports
-``metaworld`` (which pins ``mujoco==3.3.0``) and sets ``MUJOCO_GL=egl`` first unless it is already set.
+Import this module only when one of the ``GoCu/VisualSawyer*-v1`` ids is made (they use string entry points): it
+imports ``mujoco`` and sets ``MUJOCO_GL=egl`` first unless it is already set.
 
-Each task is a Meta-World v3 task (MT1: 50 fixed variations of object and goal positions, drawn with the env's seed;
-each reset picks one at random). The agent sees a 32x32 RGB frame from a fixed camera that shows the gripper, the
-objects and the goal; its action is Meta-World's (hand displacement x, y, z and gripper effort, each in [-1, 1]).
-The reward is 1 at a step where Meta-World's success test holds, else 0; ``info["distance"]`` is the task's distance
-(docs/environments.md), ``info["is_success"]`` the success test, ``info["dense_reward"]`` Meta-World's own shaped
-reward (with two pucks: minus the sum of their distances to their goals), for reference only.
+The paper's tasks are those of the RIG / Skew-Fit line of work (multiworld's ``sawyer_xyz`` envs): a Sawyer hand moved
+by mocap 2 cm a step at most along each axis it may use, held to a plane or a small box, in a small workspace, for
+short episodes. The scene here is our own, built from MuJoCo primitives: a table, the hand (a wrist and what the task
+puts on it: a pusher tip, a hook, or two fingers), the objects and a goal marker; the arm above the wrist is not drawn.
+The hand is a mocap body moved in equal parts over the physics substeps of a step, so what it pushes moves smoothly.
 
-Rendering cost. Meta-World's Sawyer scene holds about 46,000 mesh vertices, and with Mesa's software renderer a
-32x32 frame of it costs far more than the physics. Frames are therefore drawn from a copy of the model whose meshes
-are simplified by vertex clustering (:attr:`SawyerTask.mesh_cell`, 1-2 cm: what a 32x32 pixel covers here), the parts of the
-robot the camera never shows are left out (:attr:`SawyerTask.hidden_bodies`), and the copy is posed from the
-simulation's state before each frame; shadows, reflections and multisampling are off. The simulation itself runs on
-Meta-World's own model. Frames differ from those of the whole scene by about 1/255 on average at most
-(``tests/test_sawyer_envs.py``); docs/environments.md has the speeds.
+Each task's facts (workspace, object and goal ranges, episode length, success radius, and where we chose a figure
+multiworld does not give) are in docs/environments.md; :data:`SAWYER_TASKS` holds them. The reward is 1 at a step
+where the success test holds, else 0; ``info["distance"]`` is the paper's final distance of the task (metres, or
+radians for the door) and ``info["is_success"]`` the test. :meth:`SawyerTask.expert_action` is a scripted policy that
+reads the simulator's state (tests and ``examples/sawyer_curiosity.py``).
 """
 
 from __future__ import annotations
@@ -25,9 +22,7 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import pathlib  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-from typing import Any, Callable, Optional, SupportsFloat  # noqa: E402
+from typing import Any, Optional, SupportsFloat  # noqa: E402
 
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
@@ -37,316 +32,379 @@ from sb3_gocu._extras import missing_extra  # noqa: E402
 
 try:
     import cv2
-    import metaworld
     import mujoco
-    from scipy.spatial.transform import Rotation
-except ModuleNotFoundError as e:  # the [robotics] extra brings them
-    raise missing_extra(e, "sb3_gocu.envs.sawyer_envs (the GoCu/VisualSawyer* ids)", "robotics") from e
+except ModuleNotFoundError as e:  # the [mujoco] extra brings them
+    raise missing_extra(e, "sb3_gocu.envs.sawyer_envs (the GoCu/VisualSawyer* ids)", "mujoco") from e
 
 from sb3_gocu.envs.small_frames import free_camera, small_frame_renderer  # noqa: E402
 
-__all__ = ["N_VARIATIONS", "SAWYER_TASKS", "SawyerTask", "TwoPuckPushEnv", "VisualSawyer", "make_visual_sawyer"]
+__all__ = ["SAWYER_TASKS", "SawyerTask", "VisualSawyer", "make_visual_sawyer"]
 
-#: object and goal layouts of a task (Meta-World's MT1 count), drawn from the env's seed
-N_VARIATIONS = 50
+#: largest hand move along one axis in one step, metres (multiworld's action scale)
+STEP = 0.02
+#: physics substeps of one env step, and their length (seconds)
+SUBSTEPS, TIMESTEP = 10, 0.005
 
-
-def _target(env: Any) -> np.ndarray:
-    return np.asarray(env._target_pos, dtype=np.float64)
-
-
-def _reach_distance(env: Any) -> float:
-    """Gripper centre (between the fingers) to the goal, metres (Meta-World's reach test: <= 0.05)."""
-    return float(np.linalg.norm(env.tcp_center - _target(env)))
-
-
-def _object_distance(env: Any) -> float:
-    """Object centre to the goal, metres (push: <= 0.05; pick-and-place: <= 0.07)."""
-    return float(np.linalg.norm(env._get_pos_objects()[:3] - _target(env)))
+# Collision groups: the table collides with the objects only; the hand's parts with the objects only.
+_TABLE = 'contype="1" conaffinity="1"'
+_OBJECT = 'contype="1" conaffinity="3"'
+_HAND = 'contype="2" conaffinity="2"'
+_VISUAL = 'contype="0" conaffinity="0"'
 
 
-def _two_puck_distance(env: Any) -> float:
-    """Mean over the two pucks of puck centre to its own goal, metres (success: each <= 0.05)."""
-    return float(np.mean(env.puck_distances()))
+def _puck(name: str, xy: tuple[float, float], radius: float, rgba: str) -> str:
+    return (
+        f'<body name="{name}" pos="{xy[0]} {xy[1]} 0.02"><joint name="{name}" type="free" damping="0.01"/>'
+        f'<geom type="cylinder" size="{radius} 0.02" mass="0.1" rgba="{rgba}" friction="0.5 0.005 0.0001" {_OBJECT}/>'
+        "</body>"
+    )
 
 
-def _door_distance(env: Any) -> float:
-    """Door handle to its open position along x, metres (Meta-World's door-open test: <= 0.08)."""
-    return float(abs(env._get_pos_objects()[0] - _target(env)[0]))
+def _marker(name: str, size: float, rgba: str) -> str:
+    return f'<body name="{name}" mocap="true"><geom type="sphere" size="{size}" rgba="{rgba}" {_VISUAL}/></body>'
 
 
-@dataclass(frozen=True)
+def _scene(hand: str, objects: str, extra: str = "") -> str:
+    """The MJCF of a task: table, mocap hand (wrist plus ``hand``), ``objects`` (bodies), ``extra`` (actuators)."""
+    return f"""
+<mujoco model="gocu_sawyer">
+  <option timestep="{TIMESTEP}" integrator="implicitfast" cone="elliptic" impratio="10"/>
+  <visual><headlight ambient="0.5 0.5 0.5" diffuse="0.5 0.5 0.5"/></visual>
+  <worldbody>
+    <light pos="0 0.6 1.5" dir="0 0 -1" directional="true" diffuse="0.5 0.5 0.5"/>
+    <geom name="table" type="plane" pos="0 0.6 0" size="0.45 0.35 0.02" rgba="0.55 0.45 0.35 1" {_TABLE}/>
+    <body name="mocap" mocap="true" pos="0 0.6 0.1"/>
+    <body name="hand" pos="0 0.6 0.1" gravcomp="1"><freejoint name="hand"/>
+      <geom type="box" pos="0 0 0.05" size="0.02 0.015 0.015" mass="0.5" rgba="0.15 0.15 0.15 1" {_VISUAL}/>
+      {hand}
+    </body>
+    {objects}
+  </worldbody>
+  <equality><weld body1="mocap" body2="hand" solref="0.005 1"/></equality>
+  {extra}
+</mujoco>"""
+
+
+# ---------------------------------------------------------------------------------------------- the tasks
 class SawyerTask:
-    """One task: its Meta-World name, distance and camera (its episode length: ``sb3_gocu.envs.SAWYER_LENGTHS``).
+    """One task: its scene, workspace, layout, distance, success test and scripted policy.
 
-    :param metaworld_name: the Meta-World v3 task (``reach-v3``, ...)
-    :param distance: the task's distance from the unwrapped Meta-World env, metres
-    :param camera: free camera: ``lookat`` (3 floats), ``distance``, ``azimuth``, ``elevation``
-    :param hidden_bodies: bodies left out of the frames: those the camera never shows, wherever the hand goes in its
-        workspace (:func:`visible_bodies`; ``tests/test_sawyer_envs.py`` checks it)
-    :param mesh_cell: vertex-clustering cell of the drawn meshes, metres: 2 cm from the table's far side, where the
-        arm is small in the frame; 1 cm from above the door, where it is large
+    A subclass sets the class attributes and :meth:`layout`, :meth:`distance`; the env calls them with itself.
+
+    :cvar axes: the hand's axes the action moves (0: x, 1: y, 2: z), in action order; a gripper, if any, comes last
+    :cvar hand_low, hand_high: the hand's workspace (x, y, z), metres: the mocap point is kept in it
+    :cvar hand_start: where the hand starts each episode
+    :cvar success_radius: the success test: :meth:`distance` below it
+    :cvar max_episode_steps: the episode length (the registration's time limit)
+    :cvar camera: free camera: ``lookat``, ``distance``, ``azimuth``, ``elevation``
     """
 
-    metaworld_name: str
-    distance: Callable[[Any], float]
-    camera: dict[str, Any]
-    hidden_bodies: tuple[str, ...] = ()
-    mesh_cell: float = 0.02
+    axes: tuple[int, ...] = (0, 1)
+    gripper = False
+    hand_low = np.array([-0.1, 0.5, 0.06])
+    hand_high = np.array([0.1, 0.7, 0.06])
+    hand_start = np.array([0.0, 0.5, 0.06])
+    success_radius = 0.06
+    max_episode_steps = 100
+    camera: dict[str, Any] = {"lookat": (0.0, 0.6, 0.0), "distance": 0.55, "azimuth": 90.0, "elevation": -75.0}
+    hand_xml = f'<geom type="cylinder" pos="0 0 -0.03" size="0.015 0.02" rgba="0.7 0.1 0.1 1" {_HAND}/>'
+
+    def xml(self) -> str:
+        raise NotImplementedError
+
+    def layout(self, env: "VisualSawyer", rng: np.random.Generator) -> None:
+        """Place the objects and the goal for a new episode (the hand is already at :attr:`hand_start`)."""
+        raise NotImplementedError
+
+    def distance(self, env: "VisualSawyer") -> float:
+        raise NotImplementedError
+
+    def expert_action(self, env: "VisualSawyer") -> np.ndarray:
+        """A scripted action from the simulator's state: it solves the task in most episodes (the tests: >= 90%)."""
+        raise NotImplementedError
 
 
-#: Looks at the table from the far side, down at 60 degrees: the gripper near the top edge, the objects' and the goals'
-#: regions (x in [-0.1, 0.1], y in [0.6, 0.9]) below it; the robot's base is out of view.
-TABLE_CAMERA: dict[str, Any] = {"lookat": (0.0, 0.75, 0.05), "distance": 0.65, "azimuth": -90.0, "elevation": -60.0}
+def _towards(env: "VisualSawyer", target: np.ndarray, gain: float = 1.0) -> np.ndarray:
+    """The action along the task's axes that moves the hand's mocap point to ``target`` (x, y, z), at most one full
+    step."""
+    delta = (np.asarray(target, dtype=np.float64) - env.mocap)[list(env.task.axes)]
+    return np.clip(gain * delta / STEP, -1.0, 1.0)
 
-#: Looks straight down on the door and the arm: the door swings open toward the bottom left of the frame, where its
-#: goal marker is.
-DOOR_CAMERA: dict[str, Any] = {"lookat": (-0.1, 0.65, 0.05), "distance": 0.75, "azimuth": -90.0, "elevation": -89.0}
 
-#: the robot's parts that neither camera ever shows (its base, head, shoulder and the floor below the table)
-_UNSEEN = ("world", "pedestal", "pedestal_feet", "torso", "controller_box", "head", "screen", "right_arm_base_link",
-           "right_l0", "right_l1", "right_l1_2")
-#: ... and the upper arm, which TABLE_CAMERA never shows either
-_UNSEEN_FROM_THE_TABLE = (*_UNSEEN, "right_l2", "right_l3")
+def _push_action(
+    env: "VisualSawyer", puck: np.ndarray, goal: np.ndarray, contact: float, obstacle: Optional[np.ndarray] = None
+) -> np.ndarray:
+    """Push a puck (x, y) toward ``goal`` (x, y) with the hand's tip: circle round it to its far side from the goal,
+    then push along the line to the goal, slowing near it; stop within 1.5 cm. :param contact: puck + tip radius
+    :param obstacle: another puck (x, y) to keep clear of while circling"""
+    to_goal = goal - puck
+    remaining = np.linalg.norm(to_goal)
+    if remaining < 0.015:  # there: hold the mocap point where the hand is, so the hand does not catch up with it
+        return _towards(env, env.hand)
+    u = to_goal / remaining
+    rel = env.hand[:2] - puck
+    behind = np.arctan2(-u[1], -u[0])
+    turn = (behind - np.arctan2(rel[1], rel[0]) + np.pi) % (2 * np.pi) - np.pi  # how far round the puck to go
+    if abs(turn) < 0.2 and np.linalg.norm(rel) < contact + 0.02:  # behind it: push, onto the line as we go
+        across = rel @ np.array([-u[1], u[0]])
+        aim = puck - u * (contact - 0.003) + u * min(remaining, 0.02) * 0.5 - np.array([-u[1], u[0]]) * across
+        return _towards(env, np.array([*aim, env.hand[2]]))
+    radius = contact + 0.015
+    angle = np.arctan2(rel[1], rel[0]) + (np.clip(turn, -0.7, 0.7) if np.linalg.norm(rel) > radius - 0.01 else 0.0)
+    waypoint = puck + radius * np.array([np.cos(angle), np.sin(angle)])
+    action = _towards(env, np.array([*waypoint, env.hand[2]]))
+    if obstacle is not None:  # pushed away from the other puck when near it
+        away = env.hand[:2] - obstacle
+        if np.linalg.norm(away) < contact + 0.02:
+            action = np.clip(action + away / np.linalg.norm(away), -1.0, 1.0)
+    return action
+
+
+class Reacher(SawyerTask):
+    """Move the hand to the goal (a green dot) in a 40 x 20 cm rectangle, the hand held at z = 0.055."""
+
+    hand_low = np.array([-0.2, 0.55, 0.055])
+    hand_high = np.array([0.2, 0.75, 0.055])
+    hand_start = np.array([0.0, 0.65, 0.055])
+    max_episode_steps = 50
+    camera = {"lookat": (0.0, 0.65, 0.0), "distance": 0.6, "azimuth": 90.0, "elevation": -75.0}
+    hand_xml = f'<geom type="sphere" size="0.02" rgba="0.7 0.1 0.1 1" {_VISUAL}/>'
+
+    def xml(self) -> str:
+        return _scene(self.hand_xml, _marker("goal", 0.02, "0.1 0.8 0.1 1"))
+
+    #: goals are drawn at least this far from the hand's start (nearer, an episode could start solved)
+    min_goal_distance = 0.1
+
+    def layout(self, env: "VisualSawyer", rng: np.random.Generator) -> None:
+        while True:
+            goal = rng.uniform(self.hand_low[:2], self.hand_high[:2])
+            if np.linalg.norm(goal - self.hand_start[:2]) >= self.min_goal_distance:
+                break
+        env.set_marker("goal", [*goal, 0.055])
+
+    def distance(self, env: "VisualSawyer") -> float:
+        return float(np.linalg.norm(env.hand - env.marker("goal")))
+
+    def expert_action(self, env: "VisualSawyer") -> np.ndarray:
+        return _towards(env, env.marker("goal"))
+
+
+class Pusher(SawyerTask):
+    """Push a puck (red, 4 cm radius, from (0, 0.6)) to the goal (a green dot); the hand held at z = 0.06."""
+
+    puck_radius, tip_radius = 0.04, 0.015
+    goal_low, goal_high = np.array([-0.15, 0.5]), np.array([0.15, 0.7])
+    puck_start = (0.0, 0.6)
+    #: goals are drawn at least this far from the puck's start (nearer, an episode would start solved)
+    min_goal_distance = 0.1
+
+    def xml(self) -> str:
+        objects = _puck("puck", self.puck_start, self.puck_radius, "0.8 0.1 0.1 1")
+        return _scene(self.hand_xml, objects + _marker("goal", 0.02, "0.1 0.8 0.1 1"))
+
+    def layout(self, env: "VisualSawyer", rng: np.random.Generator) -> None:
+        while True:
+            goal = rng.uniform(self.goal_low, self.goal_high)
+            if np.linalg.norm(goal - self.puck_start) >= self.min_goal_distance:
+                break
+        env.set_marker("goal", [*goal, 0.02])
+
+    def distance(self, env: "VisualSawyer") -> float:
+        return float(np.linalg.norm(env.body_pos("puck")[:2] - env.marker("goal")[:2]))
+
+    def expert_action(self, env: "VisualSawyer") -> np.ndarray:
+        contact = self.puck_radius + self.tip_radius
+        return _push_action(env, env.body_pos("puck")[:2], env.marker("goal")[:2], contact)
+
+
+class MultiObjectPusher(SawyerTask):
+    """Push two pucks (red from (0.06, 0.6), blue from (-0.06, 0.6); 3.5 cm radius) each to its own goal (green to
+    the right, yellow to the left); the hand held at z = 0.06. The distance is the sum of the two."""
+
+    puck_radius, tip_radius = 0.035, 0.015
+    starts = ((0.06, 0.6), (-0.06, 0.6))
+    goal_ranges = ((np.array([0.0, 0.5]), np.array([0.15, 0.7])), (np.array([-0.15, 0.5]), np.array([0.0, 0.7])))
+    goal_separation = 0.08
+    max_episode_steps = 150
+
+    def xml(self) -> str:
+        objects = (
+            _puck("puck", self.starts[0], self.puck_radius, "0.8 0.1 0.1 1")
+            + _puck("puck2", self.starts[1], self.puck_radius, "0.1 0.2 0.9 1")
+            + _marker("goal", 0.018, "0.1 0.8 0.1 1")
+            + _marker("goal2", 0.018, "0.95 0.85 0.0 1")
+        )
+        return _scene(self.hand_xml, objects)
+
+    def layout(self, env: "VisualSawyer", rng: np.random.Generator) -> None:
+        while True:
+            goals = [rng.uniform(low, high) for low, high in self.goal_ranges]
+            if np.linalg.norm(goals[0] - goals[1]) >= self.goal_separation:
+                break
+        env.set_marker("goal", [*goals[0], 0.02])
+        env.set_marker("goal2", [*goals[1], 0.02])
+
+    def puck_distances(self, env: "VisualSawyer") -> np.ndarray:
+        """Each puck's centre to its own goal (x, y), metres."""
+        return np.array([
+            np.linalg.norm(env.body_pos(puck)[:2] - env.marker(goal)[:2]) for puck, goal in (("puck", "goal"), ("puck2", "goal2"))
+        ])
+
+    def distance(self, env: "VisualSawyer") -> float:
+        return float(self.puck_distances(env).sum())
+
+    def expert_action(self, env: "VisualSawyer") -> np.ndarray:
+        (puck, goal), other = (("puck", "goal"), "puck2") if self.puck_distances(env)[0] > 0.025 else (("puck2", "goal2"), "puck")
+        contact = self.puck_radius + self.tip_radius
+        return _push_action(env, env.body_pos(puck)[:2], env.marker(goal)[:2], contact, env.body_pos(other)[:2])
+
+
+class DoorHook(SawyerTask):
+    """Pull a door open to the goal angle (a green dot where the handle then is) with a hook under the hand.
+
+    The door (hinge at x = 0.1, y = 0.66, vertical axis; 0-60 degrees) swings toward the hand; its handle is an L, a bar
+    2.5 cm in front of the door joined to it at its foot, so the hook goes in from above and pulls.
+    """
+
+    axes = (0, 1, 2)
+    hand_low = np.array([-0.1, 0.45, 0.1])
+    hand_high = np.array([0.05, 0.65, 0.25])
+    hand_start = np.array([-0.025, 0.5, 0.22])
+    hinge = np.array([0.1, 0.66])
+    #: hinge to the middle of the handle's slot, along the door; the slot's distance in front of the door's face
+    slot_radius, slot_depth = 0.15, 0.03
+    goal_high = 0.83
+    success_radius = 0.02
+    camera = {"lookat": (0.0, 0.57, 0.05), "distance": 0.55, "azimuth": 90.0, "elevation": -80.0}
+    hand_xml = (
+        f'<geom type="capsule" fromto="0 0 0.03 0 0 -0.07" size="0.007" rgba="0.2 0.2 0.7 1" {_HAND}/>'
+        f'<geom type="box" pos="0 0 0.03" size="0.015 0.015 0.01" rgba="0.2 0.2 0.7 1" {_VISUAL}/>'
+    )
+
+    def xml(self) -> str:
+        r, d = self.slot_radius, self.slot_depth
+        handle = f'{_HAND} solref="0.004 1"'  # stiff, so the hook does not pass through it; the door's parts touch the hand only
+        door = f"""
+    <body name="door" pos="{self.hinge[0]} {self.hinge[1]} 0">
+      <joint name="hinge" type="hinge" axis="0 0 1" range="0 60" damping="1" armature="0.01"/>
+      <geom type="box" pos="-0.11 0.01 0.12" size="0.11 0.01 0.12" rgba="0.45 0.6 0.75 1" mass="1" {_HAND}/>
+      <geom type="box" pos="{-r} {-d / 2} 0.04" size="0.03 {d / 2 + 0.01} 0.008" rgba="0.3 0.3 0.3 1" {handle}/>
+      <geom type="box" pos="{-r} {-d - 0.01} 0.085" size="0.03 0.01 0.05" rgba="0.3 0.3 0.3 1" {handle}/>
+    </body>"""
+        post = f'pos="{self.hinge[0] + 0.02} {self.hinge[1] + 0.01} 0.12"'
+        walls = f'<geom type="box" {post} size="0.015 0.02 0.12" rgba="0.4 0.4 0.4 1" {_TABLE}/>'
+        return _scene(self.hand_xml, door + f"<body>{walls}</body>" + _marker("goal", 0.015, "0.1 0.8 0.1 1"))
+
+    def slot(self, angle: float) -> np.ndarray:
+        """The middle of the handle's slot (x, y) with the door at ``angle`` radians."""
+        c, s = np.cos(angle), np.sin(angle)
+        x, y = -self.slot_radius, -self.slot_depth / 2  # in the door's frame, turned by the angle about z
+        return self.hinge + np.array([c * x - s * y, s * x + c * y])
+
+    def layout(self, env: "VisualSawyer", rng: np.random.Generator) -> None:
+        env.goal_angle = float(rng.uniform(0.0, self.goal_high))
+        env.set_marker("goal", [*self.slot(env.goal_angle), 0.2])
+
+    def angle(self, env: "VisualSawyer") -> float:
+        return float(env.data.joint("hinge").qpos[0])
+
+    def distance(self, env: "VisualSawyer") -> float:
+        return abs(self.angle(env) - env.goal_angle)
+
+    def expert_action(self, env: "VisualSawyer") -> np.ndarray:
+        angle = self.angle(env)
+        slot = self.slot(angle)
+        if np.linalg.norm(env.hand[:2] - slot) > 0.008 and env.hand[2] > 0.14:  # above the slot first
+            return _towards(env, [*slot, 0.22])
+        if env.hand[2] > 0.135:  # then down into it
+            return _towards(env, [*slot, 0.13])
+        # then round the door's arc, hooked: the hook leads the slot's middle by its play against the bar
+        error = env.goal_angle - angle
+        play = (self.slot_depth / 2 - 0.007) / self.slot_radius
+        return _towards(env, [*self.slot(angle + np.clip(error, -0.1, 0.1) + np.sign(error) * play), 0.13])
+
+
+class PickAndPlace(SawyerTask):
+    """Pick up a ball (1.75 cm radius, from (0, 0.6) on the table) with two fingers and hold it at the goal (a green
+    dot in the air); the hand held to the plane x = 0, the action (dy, dz, gripper: -1 open, 1 closed)."""
+
+    axes = (1, 2)
+    gripper = True
+    hand_low = np.array([0.0, 0.55, 0.02])
+    hand_high = np.array([0.0, 0.65, 0.13])
+    hand_start = np.array([0.0, 0.6, 0.1])
+    ball_radius = 0.0175
+    goal_low, goal_high = np.array([0.55, 0.08]), np.array([0.65, 0.13])
+    max_episode_steps = 50
+    camera = {"lookat": (0.0, 0.6, 0.06), "distance": 0.35, "azimuth": 0.0, "elevation": -15.0}
+    #: finger opening (each finger's offset from the middle, metres) with the gripper open and closed
+    open_offset, closed_offset = 0.04, 0.0
+
+    def xml(self) -> str:
+        fingers = "".join(
+            f'<body name="finger{i}" pos="{sign * self.open_offset} 0 0">'
+            f'<joint name="finger{i}" type="slide" axis="{sign} 0 0" range="-0.04 0.0"/>'
+            f'<geom type="box" pos="{-sign * 0.004} 0 0.01" size="0.004 0.012 0.022" mass="0.05" friction="2 0.05 0.001"'
+            f' condim="4" solref="0.005 1" rgba="0.2 0.2 0.2 1" {_HAND}/></body>'
+            for i, sign in ((0, 1), (1, -1))
+        )
+        ball = (
+            f'<body name="ball" pos="0 0.6 {self.ball_radius}"><joint name="ball" type="free" damping="0.001"/>'
+            f'<geom type="sphere" size="{self.ball_radius}" mass="0.05" condim="4" friction="2 0.05 0.001"'
+            f' rgba="0.8 0.1 0.1 1" {_OBJECT}/></body>'
+        )
+        actuators = "<actuator>" + "".join(
+            f'<position joint="finger{i}" kp="300" kv="5" ctrlrange="-0.04 0"/>' for i in (0, 1)
+        ) + "</actuator>"
+        return _scene(fingers, ball + _marker("goal", 0.015, "0.1 0.8 0.1 1"), actuators)
+
+    def set_gripper(self, env: "VisualSawyer", effort: float) -> None:
+        """Finger targets from the gripper action: -1 open, 1 closed (on the ball: squeezing it)."""
+        closed = (effort + 1.0) / 2.0 * (self.open_offset - self.closed_offset + 0.01)
+        env.data.ctrl[:] = -min(closed, 0.04)
+
+    def layout(self, env: "VisualSawyer", rng: np.random.Generator) -> None:
+        env.set_marker("goal", [0.0, *rng.uniform(self.goal_low, self.goal_high)])
+
+    def distance(self, env: "VisualSawyer") -> float:
+        return float(np.linalg.norm(env.body_pos("ball") - env.marker("goal")))
+
+    def expert_action(self, env: "VisualSawyer") -> np.ndarray:
+        ball, hand = env.body_pos("ball"), env.hand
+        gap = np.linalg.norm(ball[1:] - (hand[1:] - [0, 0.0]))
+        if ball[2] < self.ball_radius + 0.01 and gap > 0.012:  # ball on the table, hand not at it: go there open
+            above = [0.0, ball[1], max(hand[2], 0.06)] if abs(hand[1] - ball[1]) > 0.008 else [0.0, ball[1], 0.02]
+            return np.array([*_towards(env, above), -1.0])
+        if env.grip_steps < 4:  # close on it
+            env.grip_steps += 1
+            return np.array([0.0, 0.0, 1.0])
+        return np.array([*_towards(env, env.marker("goal") + (hand - ball)), 1.0])
+
 
 #: the registered tasks, by id
 SAWYER_TASKS: dict[str, SawyerTask] = {
-    "GoCu/VisualSawyerReacher-v0": SawyerTask("reach-v3", _reach_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
-    "GoCu/VisualSawyerDoorHook-v0": SawyerTask("door-open-v3", _door_distance, DOOR_CAMERA, (*_UNSEEN, "RetainingWall"), 0.01),
-    "GoCu/VisualSawyerPusher-v0": SawyerTask("push-v3", _object_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
-    "GoCu/VisualSawyerPickAndPlace-v0": SawyerTask("pick-place-v3", _object_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
-    # not a Meta-World task: built here on push-v3's scene (TwoPuckPushEnv)
-    "GoCu/VisualSawyerMultiObjectPusher-v0": SawyerTask("two-puck-push", _two_puck_distance, TABLE_CAMERA, _UNSEEN_FROM_THE_TABLE),
+    "GoCu/VisualSawyerReacher-v1": Reacher(),
+    "GoCu/VisualSawyerDoorHook-v1": DoorHook(),
+    "GoCu/VisualSawyerPusher-v1": Pusher(),
+    "GoCu/VisualSawyerMultiObjectPusher-v1": MultiObjectPusher(),
+    "GoCu/VisualSawyerPickAndPlace-v1": PickAndPlace(),
 }
-
-
-# ---------------------------------------------------------------------------------------------- two pucks
-def add_second_puck(spec: Any) -> None:
-    """Adds to push-v3's scene a second puck (``obj2``: blue, the first one's size and mass) and its goal (``goal2``:
-    yellow; the first puck is red, its goal green). :param spec: the ``mujoco.MjSpec`` of push-v3's scene"""
-    body = spec.worldbody.add_body(name="obj2", pos=[0.1, 0.6, 0.02])
-    body.add_freejoint(name="obj2joint")
-    body.explicitinertial = True
-    body.mass = 0.75
-    body.ipos = [0.0, 0.0, 0.0]  # the centre of mass at the puck's centre (unset, it is not)
-    body.iquat = [1.0, 0.0, 0.0, 0.0]
-    body.inertia = [8.80012e-04] * 3
-    body.add_geom(
-        name="obj2Geom", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.02, 0.02, 0], rgba=[0.1, 0.2, 1, 1],
-        friction=[1, 0.1, 0.002], condim=4, solimp=[0.99, 0.99, 0.01, 0.5, 2], solref=[0.01, 1],
-    )
-    spec.worldbody.add_site(name="goal2", pos=[-0.1, 0.8, 0.02], size=[0.02, 0, 0], rgba=[1, 0.85, 0, 1])
-
-
-class TwoPuckPushEnv(metaworld.envs.SawyerPushEnvV3):
-    """push-v3 with two pucks, each to its own goal: solved when both are within 0.05 m of theirs.
-
-    Meta-World's task sets do not know this task: each reset lays out the pucks and goals from :attr:`layout`
-    (x, y of puck 1, puck 2, goal 1, goal 2), which :class:`VisualSawyer` draws (:meth:`draw_layout`).
-    """
-
-    #: where pucks and goals are drawn: x in [-0.15, 0.15]; pucks at y in [0.6, 0.7], goals at y in [0.8, 0.9]
-    PUCK_LOW, PUCK_HIGH = (-0.15, 0.6), (0.15, 0.7)
-    GOAL_LOW, GOAL_HIGH = (-0.15, 0.8), (0.15, 0.9)
-    #: the least distance between the two pucks, and between the two goals
-    SEPARATION = 0.08
-
-    def __init__(self, **kwargs: Any) -> None:
-        super().__init__(**kwargs)
-        self.layout = np.array([-0.08, 0.65, 0.08, 0.65, -0.08, 0.85, 0.08, 0.85])
-        self._set_task_called = True  # no Meta-World task: reset_model reads the layout
-
-    def _initialize_simulation(self) -> tuple[Any, Any]:
-        spec = mujoco.MjSpec.from_file(self.fullpath)
-        add_second_puck(spec)
-        model = spec.compile()
-        model.vis.global_.offwidth = max(model.vis.global_.offwidth, self.width)
-        model.vis.global_.offheight = max(model.vis.global_.offheight, self.height)
-        return model, mujoco.MjData(model)
-
-    @classmethod
-    def draw_layout(cls, rng: np.random.Generator) -> np.ndarray:
-        """A layout: pucks and goals uniform in their regions, each pair at least :attr:`SEPARATION` apart."""
-        while True:
-            pucks = rng.uniform(cls.PUCK_LOW, cls.PUCK_HIGH, (2, 2))
-            goals = rng.uniform(cls.GOAL_LOW, cls.GOAL_HIGH, (2, 2))
-            if min(np.linalg.norm(pucks[0] - pucks[1]), np.linalg.norm(goals[0] - goals[1])) >= cls.SEPARATION:
-                return np.concatenate([pucks.ravel(), goals.ravel()])
-
-    def _get_pos_objects(self) -> np.ndarray:
-        return np.hstack([self.get_body_com("obj"), self.get_body_com("obj2")])
-
-    def _get_quat_objects(self) -> np.ndarray:
-        second = Rotation.from_matrix(self.data.geom("obj2Geom").xmat.reshape(3, 3)).as_quat()
-        return np.hstack([super()._get_quat_objects(), second])
-
-    @property
-    def _target_site_config(self) -> list[tuple[str, np.ndarray]]:
-        return [("goal", self._target_pos), ("goal2", self.target2)]
-
-    def puck_distances(self) -> np.ndarray:
-        """Each puck's centre to its own goal, metres."""
-        pucks = self._get_pos_objects().reshape(2, 3)
-        return np.linalg.norm(pucks - np.stack([self._target_pos, self.target2]), axis=1)
-
-    def reset_model(self) -> np.ndarray:
-        self._reset_hand()
-        z = self.init_config["obj_init_pos"][2]
-        p1, p2, g1, g2 = self.layout.reshape(4, 2)
-        self._target_pos = np.array([*g1, z])
-        self.target2 = np.array([*g2, z])
-        self.obj_init_pos = np.array([*p1, z])
-        self._set_obj_xyz(self.obj_init_pos)
-        qpos, qvel = self.data.qpos.copy(), self.data.qvel.copy()
-        adr = self.model.jnt_qposadr[self.model.joint("obj2joint").id]
-        qpos[adr:adr + 7] = [*p2, z, 1, 0, 0, 0]
-        qvel[self.model.jnt_dofadr[self.model.joint("obj2joint").id]:][:6] = 0
-        self.set_state(qpos, qvel)
-        self.model.site("goal").pos = self._target_pos
-        self.model.site("goal2").pos = self.target2
-        return self._get_obs()
-
-    def evaluate_state(self, obs: np.ndarray, action: np.ndarray) -> tuple[float, dict[str, Any]]:
-        distances = self.puck_distances()
-        return -float(distances.sum()), {"success": float((distances <= 0.05).all()), "obj_to_target": float(distances.mean())}
-
-
-# ---------------------------------------------------------------------------------------------- rendering
-def read_stl(path: pathlib.Path) -> np.ndarray:
-    """The triangles of a binary STL file as a (3 x triangles, 3) float64 array of corner positions."""
-    data = path.read_bytes()
-    n = int.from_bytes(data[80:84], "little")
-    if len(data) != 84 + 50 * n:
-        raise ValueError(f"{path} is not a binary STL file")
-    triangles = np.frombuffer(data, np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attr", "<u2")]), n, 84)
-    return triangles["corners"].reshape(-1, 3).astype(np.float64)
-
-
-def cluster_mesh(corners: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex clustering: every corner moves to the mean of the corners in its ``cell``-sized cube; triangles that
-    collapse, and repeats, are dropped. :return: (vertices, faces)"""
-    keys = np.floor(corners / cell).astype(np.int64)
-    _, index, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    index = index.ravel()
-    vertices = np.zeros((len(counts), 3))
-    np.add.at(vertices, index, corners)
-    vertices /= counts[:, None]
-    faces = index.reshape(-1, 3)
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
-    _, first = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
-    faces = faces[np.sort(first)]
-    used, faces = np.unique(faces, return_inverse=True)
-    return vertices[used], faces.reshape(-1, 3)
-
-
-def visible_bodies(env: "VisualSawyer", grid: int = 4, scale: int = 4) -> set[str]:
-    """The bodies whose geoms show in at least one frame, with the hand held at each point of a ``grid`` x ``grid`` x
-    ``grid`` lattice over its whole workspace (Meta-World's mocap bounds), gripper open and closed, seen at ``scale``
-    times the frame's resolution. What never shows can be left out of the frames (:attr:`SawyerTask.hidden_bodies`).
-    """
-    sim = env.sim
-    edit = add_second_puck if isinstance(sim, TwoPuckPushEnv) else None
-    scene = SceneRenderer(sim.model_name, env.image_size * scale, env.task.camera, mesh_cell=0.0, edit_spec=edit)  # nothing hidden
-    segmenter = scene.renderer
-    segmenter.enable_segmentation_rendering()
-    seen: set[int] = set()
-    env.reset(seed=0)
-    lows, highs = np.asarray(sim.mocap_low, dtype=np.float64), np.asarray(sim.mocap_high, dtype=np.float64)
-    try:
-        for point in np.stack(np.meshgrid(*[np.linspace(lo, hi, grid) for lo, hi in zip(lows, highs)]), -1).reshape(-1, 3):
-            for grip in (-1.0, 1.0):
-                for _ in range(30):  # the arm follows the mocap body over a few steps
-                    sim.data.mocap_pos[0] = point
-                    sim.do_simulation([grip, -grip], sim.frame_skip)
-                ids = scene.render(sim.model, sim.data)
-                seen |= {int(g) for g in np.unique(ids[..., 0][ids[..., 1] == mujoco.mjtObj.mjOBJ_GEOM])}
-    finally:
-        scene.close()
-    model = scene.model
-    return {model.body(int(model.geom_bodyid[g])).name for g in seen}
-
-
-class SceneRenderer:
-    """Small frames of a MuJoCo scene from a simplified copy of its model.
-
-    :param xml_path: the scene's MJCF file (meshes: binary STL files, paths relative to it)
-    :param size: frame side, pixels
-    :param camera: free camera: ``lookat``, ``distance``, ``azimuth``, ``elevation``
-    :param mesh_cell: vertex-clustering cell, metres (0: the meshes as they are)
-    :param hidden_bodies: bodies whose geoms are not drawn
-    :param edit_spec: changes the scene before it is compiled (as the simulation's was: :func:`add_second_puck`)
-    """
-
-    def __init__(
-        self,
-        xml_path: str,
-        size: int,
-        camera: dict[str, Any],
-        mesh_cell: float = 0.01,
-        hidden_bodies: tuple[str, ...] = (),
-        edit_spec: Optional[Callable[[Any], None]] = None,
-    ) -> None:
-        if mesh_cell < 0:
-            raise ValueError(f"mesh_cell must be >= 0, got {mesh_cell}")
-        spec = mujoco.MjSpec.from_file(xml_path)
-        if edit_spec is not None:
-            edit_spec(spec)
-        if mesh_cell > 0:
-            folder = pathlib.Path(xml_path).parent
-            for mesh in spec.meshes:
-                vertices, faces = cluster_mesh(read_stl(folder / mesh.file), mesh_cell)
-                mesh.file = ""
-                mesh.uservert = vertices.astype(np.float32).ravel().tolist()
-                mesh.userface = faces.astype(np.int32).ravel().tolist()
-        self.model = spec.compile()
-        for name in hidden_bodies:
-            body = self.model.body(name).id  # a KeyError names a body the scene does not have
-            self.model.geom_rgba[self.model.geom_bodyid == body, 3] = 0.0  # MuJoCo skips fully transparent geoms
-        self.data = mujoco.MjData(self.model)
-        self.renderer = small_frame_renderer(self.model, size)
-        self.camera = free_camera(camera)
-
-    def render(self, model: Any, data: Any) -> np.ndarray:
-        """A frame of the simulation's ``(model, data)`` (same MJCF): its state and the model fields Meta-World moves
-        at reset (body and site positions) are copied first. :return: (size, size, 3) uint8"""
-        m, d = self.model, self.data
-        m.body_pos[:] = model.body_pos
-        m.body_quat[:] = model.body_quat
-        m.site_pos[:] = model.site_pos
-        d.qpos[:] = data.qpos
-        d.mocap_pos[:] = data.mocap_pos
-        d.mocap_quat[:] = data.mocap_quat
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_camlight(m, d)  # the scene's lights follow their bodies (mj_kinematics leaves them unplaced)
-        self.renderer.update_scene(d, camera=self.camera)
-        return self.renderer.render()
-
-    def close(self) -> None:
-        self.renderer.close()
 
 
 # ---------------------------------------------------------------------------------------------- the env
 class VisualSawyer(gym.Env):
-    """A Meta-World task seen as small RGB frames, rewarded 1 at the steps where it is solved.
+    """A Sawyer task seen as small RGB frames, rewarded 1 at the steps where it is solved.
 
     :param task: the task (:data:`SAWYER_TASKS`)
     :param image_size: frame side, pixels
-    :param supersample: draw at ``image_size * supersample`` pixels, then average down (anti-aliasing: the 4 cm
-        puck stays visible)
-    :param mesh_cell: vertex-clustering cell of the drawn meshes, metres (0: Meta-World's meshes; default: the task's)
+    :param supersample: draw at ``image_size * supersample`` pixels, then average down (anti-aliasing)
     :param render_mode: ``"rgb_array"``: ``render()`` returns the observation frame
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 80}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
 
-    def __init__(
-        self,
-        task: SawyerTask,
-        image_size: int = 32,
-        supersample: int = 2,
-        mesh_cell: Optional[float] = None,
-        render_mode: Optional[str] = None,
-    ) -> None:
+    def __init__(self, task: SawyerTask, image_size: int = 32, supersample: int = 2, render_mode: Optional[str] = None) -> None:
         if image_size < 8:
             raise ValueError(f"image_size must be >= 8, got {image_size}")
         if supersample < 1:
@@ -354,58 +412,87 @@ class VisualSawyer(gym.Env):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.task = task
-        self.image_size = int(image_size)
-        self.supersample = int(supersample)
-        self.render_mode = render_mode
-        two_pucks = task.metaworld_name == "two-puck-push"
-        self.sim = TwoPuckPushEnv() if two_pucks else metaworld.env_dict.ALL_V3_ENVIRONMENTS[task.metaworld_name]()
-        self._variations: list[Any] = []  # Meta-World tasks, or two-puck layouts
-        self.scene = SceneRenderer(
-            self.sim.model_name, self.image_size * self.supersample, task.camera,
-            task.mesh_cell if mesh_cell is None else mesh_cell, task.hidden_bodies,
-            add_second_puck if two_pucks else None,
-        )
+        self.image_size, self.supersample, self.render_mode = int(image_size), int(supersample), render_mode
+        self.model = mujoco.MjModel.from_xml_string(task.xml())
+        self.data = mujoco.MjData(self.model)
+        self.renderer = small_frame_renderer(self.model, self.image_size * self.supersample)
+        self.camera = free_camera(task.camera)
         self.observation_space = spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
-        self.action_space = spaces.Box(-1.0, 1.0, self.sim.action_space.shape, np.float32)
+        n_actions = len(task.axes) + int(task.gripper)
+        self.action_space = spaces.Box(-1.0, 1.0, (n_actions,), np.float32)
+        self.goal_angle = 0.0  # the door's goal
+        self.grip_steps = 0  # the scripted pick-and-place policy's count of closing steps
         self._frame: Optional[np.ndarray] = None
 
+    # -- the simulator's state, for the tasks
+    @property
+    def hand(self) -> np.ndarray:
+        """The hand's position (x, y, z), metres (it follows the mocap point the actions move, a few mm behind)."""
+        return self.data.body("hand").xpos.copy()
+
+    @property
+    def mocap(self) -> np.ndarray:
+        """The point the actions move (x, y, z), metres: the hand is welded to it."""
+        return self.data.mocap_pos[0].copy()
+
+    def _mocap(self, name: str) -> int:
+        return int(self.model.body_mocapid[self.model.body(name).id])
+
+    def marker(self, name: str) -> np.ndarray:
+        return self.data.mocap_pos[self._mocap(name)].copy()
+
+    def set_marker(self, name: str, pos: Any) -> None:
+        self.data.mocap_pos[self._mocap(name)] = pos
+
+    def body_pos(self, name: str) -> np.ndarray:
+        return self.data.body(name).xpos.copy()
+
     def _observe(self) -> np.ndarray:
-        frame = self.scene.render(self.sim.model, self.sim.data)
+        self.renderer.update_scene(self.data, camera=self.camera)
+        frame = self.renderer.render()
         if self.supersample > 1:
             frame = cv2.resize(frame, (self.image_size, self.image_size), interpolation=cv2.INTER_AREA)
         self._frame = np.ascontiguousarray(frame, dtype=np.uint8)
         return self._frame
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict[str, Any]] = None) -> tuple[np.ndarray, dict[str, Any]]:
-        """Pick one of the task's :data:`N_VARIATIONS` variations at random and start an episode in it.
+        """Start an episode: the hand at its start, the objects at theirs, a goal drawn at random.
 
-        :param seed: seeds the variations (the first reset draws them) and the choice among them
+        :param seed: seeds the goals of this and later episodes
         :param options: unused
-        :return: the first frame, and ``info`` with ``distance``, ``is_success`` and ``variation``
+        :return: the first frame, and ``info`` with ``distance`` and ``is_success``
         """
         super().reset(seed=seed)
-        two_pucks = isinstance(self.sim, TwoPuckPushEnv)
-        if not self._variations or seed is not None:
-            if two_pucks:
-                self._variations = [TwoPuckPushEnv.draw_layout(self.np_random) for _ in range(N_VARIATIONS)]
-            else:
-                task_seed = int(self.np_random.integers(2**31 - 1))
-                self._variations = list(metaworld.MT1(self.task.metaworld_name, seed=task_seed).train_tasks)
-        variation = int(self.np_random.integers(len(self._variations)))
-        if two_pucks:
-            self.sim.layout = self._variations[variation]
-        else:
-            self.sim.set_task(self._variations[variation])
-        self.sim.reset()
-        distance = self.task.distance(self.sim)
-        return self._observe(), {"distance": distance, "is_success": False, "variation": variation}
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.mocap_pos[0] = self.task.hand_start
+        self.data.joint("hand").qpos[:3] = self.task.hand_start
+        self.grip_steps = 0
+        self.task.layout(self, self.np_random)
+        if self.task.gripper:
+            self.task.set_gripper(self, -1.0)
+        mujoco.mj_forward(self.model, self.data)
+        return self._observe(), {"distance": self.task.distance(self), "is_success": False}
 
     def step(self, action: Any) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
-        """Move the hand and gripper. :return: frame, reward (1 if solved now), terminated (never), truncated (never:
-        the registration's time limit ends episodes), info"""
-        _, dense, _, _, sim_info = self.sim.step(np.asarray(action, dtype=np.float32))
-        success = bool(sim_info["success"])
-        info = {"distance": self.task.distance(self.sim), "is_success": success, "dense_reward": float(dense)}
+        """Move the hand (and close or open the gripper). :return: frame, reward (1 if solved now), terminated (never),
+        truncated (never: the registration's time limit ends episodes), info"""
+        action = np.asarray(action, dtype=np.float64).reshape(-1)
+        if action.shape != self.action_space.shape:
+            raise ValueError(f"action must have shape {self.action_space.shape}, got {action.shape}")
+        if not np.all(np.abs(action) <= 1.0):
+            raise ValueError(f"action must lie in [-1, 1] on every axis, got {action}")
+        start = self.mocap
+        target = start.copy()
+        target[list(self.task.axes)] += STEP * action[: len(self.task.axes)]
+        target = np.clip(target, self.task.hand_low, self.task.hand_high)
+        if self.task.gripper:
+            self.task.set_gripper(self, float(action[-1]))
+        for i in range(1, SUBSTEPS + 1):
+            self.data.mocap_pos[0] = start + (target - start) * i / SUBSTEPS
+            mujoco.mj_step(self.model, self.data)
+        distance = self.task.distance(self)
+        success = distance < self.task.success_radius
+        info = {"distance": distance, "is_success": success}
         return self._observe(), 1.0 if success else 0.0, False, False, info
 
     def render(self) -> Optional[np.ndarray]:
@@ -413,11 +500,10 @@ class VisualSawyer(gym.Env):
         return None if self.render_mode is None else self._frame
 
     def close(self) -> None:
-        self.scene.close()
-        self.sim.close()
+        self.renderer.close()
 
 
 def make_visual_sawyer(env_id: str, **kwargs: Any) -> VisualSawyer:
-    """Entry point of the ``GoCu/VisualSawyer*`` ids. :param env_id: the id (:data:`SAWYER_TASKS`) :param kwargs: of
-    :class:`VisualSawyer`"""
+    """Entry point of the ``GoCu/VisualSawyer*-v1`` ids. :param env_id: the id (:data:`SAWYER_TASKS`) :param kwargs:
+    of :class:`VisualSawyer`"""
     return VisualSawyer(SAWYER_TASKS[env_id], **kwargs)

@@ -1,11 +1,12 @@
 """Where is a trained PPO_GoCu agent curious on a Sawyer task? r_gc along an expert's episode and a random one.
 
-    MUJOCO_GL=egl python examples/sawyer_curiosity.py --model model.zip --env GoCu/VisualSawyerDoorHook-v0 --seed 0 --out out/
+    MUJOCO_GL=egl python examples/sawyer_curiosity.py --model model.zip --env GoCu/VisualSawyerPusher-v1 --seed 0 --out out/
 
 The Sawyer tasks have no grid to map (``examples/curiosity_map.py`` is DoorKey's), so this draws the curiosity along
-two episodes of the same variation (``env.reset(seed=--seed)``): one of Meta-World's scripted policy for the task,
-which solves it, and one of a random policy. Each frame is scored against a fixed set of K goals drawn once from the
-model's goal buffer, as in ``curiosity_map.py``:
+two episodes from the same seed (``env.reset(seed=--seed)``, which draws the goal, so both have the same one): one of
+the task's scripted policy (``env.unwrapped.task.expert_action``, read from the simulator's state), which solves it,
+and one of a random policy. Each frame is scored against a fixed set of K goals drawn once from the model's goal
+buffer, as in ``curiosity_map.py``:
 
 * raw r_gc of eq 13, ``(alpha - h(m_1..m_K)) / delta`` (before the normalisation of eq 14);
 * max mastery, ``max_k m(phi(s), phi(g_k))``.
@@ -37,29 +38,18 @@ from sb3_gocu import PPO_GoCu  # noqa: E402
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from curiosity_map import sample_goals, score, to_module_layout  # noqa: E402
 
-#: Meta-World's scripted policy of each task (the two-puck pusher has none)
-EXPERTS = {"reach-v3": "SawyerReachV3Policy", "door-open-v3": "SawyerDoorOpenV3Policy",
-           "push-v3": "SawyerPushV3Policy", "pick-place-v3": "SawyerPickPlaceV3Policy"}
-
 
 def episode(env: gym.Env, policy: str, seed: int, max_steps: int | None = None) -> dict[str, np.ndarray]:
     """One episode of ``policy`` ("expert" or "random") from ``env.reset(seed=seed)``: frames (n, H, W, C), distances,
     successes."""
-    import metaworld.policies
-
     base = env.unwrapped
-    if policy == "expert":
-        name = base.task.metaworld_name
-        if name not in EXPERTS:
-            raise ValueError(f"no scripted policy for {name!r}; the tasks with one: {sorted(EXPERTS)}")
-        expert = getattr(metaworld.policies, EXPERTS[name])()
     obs, info = env.reset(seed=seed)
     env.action_space.seed(seed)
     frames, distances, successes = [obs], [info["distance"]], [False]
     done, t = False, 0
     while not done and (max_steps is None or t < max_steps):
-        action = expert.get_action(base.sim._get_obs()) if policy == "expert" else env.action_space.sample()
-        obs, _, terminated, truncated, info = env.step(np.clip(action, -1, 1))
+        action = base.task.expert_action(base) if policy == "expert" else env.action_space.sample()
+        obs, _, terminated, truncated, info = env.step(np.clip(action, -1, 1).astype(np.float32))
         frames.append(obs)
         distances.append(info["distance"])
         successes.append(info["is_success"])
@@ -127,8 +117,8 @@ def draw(result: dict[str, Any], title: str, path: pathlib.Path) -> None:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, help="a PPO_GoCu model or checkpoint zip trained on --env")
-    p.add_argument("--env", default="GoCu/VisualSawyerDoorHook-v0")
-    p.add_argument("--seed", type=int, default=0, help="the variation (env.reset(seed=...)) and the goals drawn")
+    p.add_argument("--env", default="GoCu/VisualSawyerDoorHook-v1")
+    p.add_argument("--seed", type=int, default=0, help="the episodes' goal (env.reset(seed=...), the same for both) and the goals drawn")
     p.add_argument("--max-steps", type=int, default=None, help="stop each episode after this many steps (default: its length)")
     p.add_argument("--out", default="sawyer_curiosity", help="output folder")
     args = p.parse_args(argv)

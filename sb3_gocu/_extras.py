@@ -2,7 +2,7 @@
 
 ``pip install sb3-gocu`` brings what ``import sb3_gocu`` needs (Stable-Baselines3, PyTorch, Gymnasium, NumPy);
 the rest comes with extras: ``[minigrid]`` (the ``GoCu/DoorKey-*`` ids), ``[mujoco]`` (``GoCu/VisualReacher-v0``,
-``GoCu/VisualPusher-v0``), ``[robotics]`` (the ``GoCu/VisualSawyer*`` ids: Meta-World, which pins mujoco 3.3.0),
+``GoCu/VisualPusher-v0``, the ``GoCu/VisualSawyer*`` ids),
 ``[atari]`` (the ``ALE/...`` ids), ``[zoo]`` (the rl-zoo3 launchers ``sb3_gocu.train``,
 ``.enjoy``, ``.record_video`` and rl-zoo3's plots), ``[plots]`` (matplotlib), ``[all]`` (all of them).
 """

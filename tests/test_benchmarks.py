@@ -672,12 +672,12 @@ def test_final_distance_and_success_on_a_sawyer_task(se, tmp_path):
     episodes' last steps, and the summary shows it (Table 2's measure)."""
     out = tmp_path / "sawyer"
     args = tiny_args(out, 1024, "--algos", "ppo")
-    args[args.index("GoCu/DoorKey-5x5-v0")] = "GoCu/VisualSawyerReacher-v0"
+    args[args.index("GoCu/DoorKey-5x5-v0")] = "GoCu/VisualSawyerReacher-v1"
     summary = se.main(args)
     rows = read(out / "ppo_seed0.csv")
     last = rows[-1]
-    assert int(last["window_episodes"]) == 4 * (1024 // 4 // 150)  # 4 envs of 256 steps, 150-step episodes
-    assert 0.05 < float(last["final_distance"]) < 1.0 and float(last["final_success"]) == 0.0  # a random policy
+    assert int(last["window_episodes"]) == 4 * (1024 // 4 // 50)  # 4 envs of 256 steps, 50-step episodes
+    assert 0.06 < float(last["final_distance"]) < 0.5 and float(last["final_success"]) <= 0.25  # a random policy
     assert "final distance" in summary and f"{float(last['final_distance']):.3f}" in summary
 
 

@@ -62,8 +62,10 @@ def test_doorkey_names_the_minigrid_extra(monkeypatch):
 def test_mujoco_ids_name_the_mujoco_extra(monkeypatch):
     hide(monkeypatch, "mujoco")
     forget(monkeypatch, "sb3_gocu.envs.mujoco_envs")
-    with pytest.raises(ModuleNotFoundError, match=r'needs mujoco: pip install "sb3-gocu\[mujoco\]"$'):
-        check_env_extra("GoCu/VisualReacher-v0")
+    forget(monkeypatch, "sb3_gocu.envs.sawyer_envs")
+    for env_id in ("GoCu/VisualReacher-v0", "GoCu/VisualSawyerPusher-v1"):
+        with pytest.raises(ModuleNotFoundError, match=r'needs mujoco: pip install "sb3-gocu\[mujoco\]"$'):
+            check_env_extra(env_id)
 
 
 def test_atari_ids_name_the_atari_extra(monkeypatch):

@@ -41,7 +41,7 @@ from sample_efficiency import machine_line
 
 #: the envs of the issue's table: DoorKey, two Atari games and the five Sawyer tasks
 DEFAULT_ENVS = ["GoCu/DoorKey-8x8-v0", "ALE/MontezumaRevenge-v5", "ALE/Pitfall-v5", "ALE/PrivateEye-v5",
-                *(f"GoCu/VisualSawyer{task}-v0" for task in ("Reacher", "DoorHook", "Pusher", "MultiObjectPusher", "PickAndPlace"))]
+                *(f"GoCu/VisualSawyer{task}-v1" for task in ("Reacher", "DoorHook", "Pusher", "MultiObjectPusher", "PickAndPlace"))]
 
 
 def make_env(env_id: str, n_envs: int, seed: int) -> tuple[Any, ObservationAdapter]:

@@ -145,13 +145,23 @@ def _push_action(
     rel = env.hand[:2] - puck
     behind = np.arctan2(-u[1], -u[0])
     turn = (behind - np.arctan2(rel[1], rel[0]) + np.pi) % (2 * np.pi) - np.pi  # how far round the puck to go
-    if abs(turn) < 0.2 and np.linalg.norm(rel) < contact + 0.02:  # behind it: push, onto the line as we go
-        across = rel @ np.array([-u[1], u[0]])
-        aim = puck - u * (contact - 0.003) + u * min(remaining, 0.02) * 0.5 - np.array([-u[1], u[0]]) * across
-        return _towards(env, np.array([*aim, env.hand[2]]))
     radius = contact + 0.015
-    angle = np.arctan2(rel[1], rel[0]) + (np.clip(turn, -0.7, 0.7) if np.linalg.norm(rel) > radius - 0.01 else 0.0)
-    waypoint = puck + radius * np.array([np.cos(angle), np.sin(angle)])
+    behind_point = puck - u * radius
+    low, high = env.task.hand_low[:2], env.task.hand_high[:2]
+    reachable = bool(((low <= behind_point) & (behind_point <= high)).all())
+    if np.linalg.norm(rel) < contact + 0.02:
+        if abs(turn) < 0.2:  # behind it: push, onto the line as we go
+            across = rel @ np.array([-u[1], u[0]])
+            aim = puck - u * (contact - 0.003) + u * min(remaining, 0.02) * 0.5 - np.array([-u[1], u[0]]) * across
+            return _towards(env, np.array([*aim, env.hand[2]]))
+        if not reachable and abs(turn) < 1.2:  # its far side is beyond the workspace: push it off the edge first
+            return _towards(env, np.array([*(puck - rel / np.linalg.norm(rel) * (contact - 0.01)), env.hand[2]]))
+    outward = puck + rel / max(np.linalg.norm(rel), 1e-9) * radius
+    if np.linalg.norm(rel) < radius - 0.01 and ((low <= outward) & (outward <= high)).all():  # too near: step back
+        waypoint = outward
+    else:  # round the puck, toward its far side
+        angle = np.arctan2(rel[1], rel[0]) + np.clip(turn, -0.7, 0.7)
+        waypoint = puck + radius * np.array([np.cos(angle), np.sin(angle)])
     action = _towards(env, np.array([*waypoint, env.hand[2]]))
     if obstacle is not None:  # pushed away from the other puck when near it
         away = env.hand[:2] - obstacle

@@ -166,3 +166,35 @@ def test_every_task_is_registered_with_its_length():
     assert set(SAWYER_IDS) == set(SAWYER_TASKS)
     for env_id in SAWYER_IDS:
         assert gym.spec(env_id).max_episode_steps == SAWYER_TASKS[env_id].max_episode_steps
+
+
+def test_the_reference_probe_reports_the_scripted_and_the_random_policy(capsys):
+    from conftest import load_script
+
+    probe = load_script("sawyer_tasks", "benchmarks/probes/sawyer_tasks.py")
+    results = probe.main(["--episodes", "2", "--ids", "GoCu/VisualSawyerPickAndPlace-v1"])
+    expert, rand = results["GoCu/VisualSawyerPickAndPlace-v1"]["expert"], results["GoCu/VisualSawyerPickAndPlace-v1"]["random"]
+    assert expert["ends"] == 1.0 and expert["final"] < 0.06 < rand["final"]
+    assert "| GoCu/VisualSawyerPickAndPlace-v1 | 1.00 / 1.00 /" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="--episodes"):
+        probe.main(["--episodes", "0"])
+
+
+def test_the_behaviour_probe_tells_a_moved_object_and_the_hands_spread(tmp_path):
+    """sawyer_behaviour.py on an untrained PPO (a random-ish policy): it moves the puck in some episodes, makes no
+    progress on average, and its hand ends spread over the workspace."""
+    import torch as th
+    from stable_baselines3 import PPO
+
+    from conftest import load_script
+    from sb3_gocu.policies import PaperCNN
+
+    th.set_num_threads(1)
+    model = PPO("CnnPolicy", gym.make("GoCu/VisualSawyerPusher-v1"), n_steps=64, seed=0,
+                policy_kwargs={"features_extractor_class": PaperCNN, "normalize_images": True})
+    model.save(tmp_path / "ppo.zip")
+    probe = load_script("sawyer_behaviour", "benchmarks/probes/sawyer_behaviour.py")
+    out = probe.main([str(tmp_path / "ppo.zip"), "--algo", "ppo", "--env", "GoCu/VisualSawyerPusher-v1", "--episodes", "4"])
+    stochastic, deterministic = out["stochastic"], out["deterministic"]
+    assert 0.0 <= stochastic["moved"] <= 1.0 and stochastic["hand_spread"] > 0.01  # random actions: the hand wanders
+    assert deterministic["hand_spread"] < stochastic["hand_spread"]  # one policy, one place whatever the goal

@@ -91,7 +91,8 @@ class SawyerTask:
 
     A subclass sets the class attributes and :meth:`layout`, :meth:`distance`; the env calls them with itself.
 
-    :cvar axes: the hand's axes the action moves (0: x, 1: y, 2: z), in action order; a gripper, if any, comes last
+    :cvar axes: the hand's axes the action moves (0: x, 1: y, 2: z), in action order
+    :cvar gripper: whether the action ends with a gripper effort (:meth:`PickAndPlace.set_gripper`)
     :cvar hand_low, hand_high: the hand's workspace (x, y, z), metres: the mocap point is kept in it
     :cvar hand_start: where the hand starts each episode
     :cvar success_radius: the success test: :meth:`distance` below it
@@ -124,11 +125,11 @@ class SawyerTask:
         raise NotImplementedError
 
 
-def _towards(env: "VisualSawyer", target: np.ndarray, gain: float = 1.0) -> np.ndarray:
+def _towards(env: "VisualSawyer", target: Any) -> np.ndarray:
     """The action along the task's axes that moves the hand's mocap point to ``target`` (x, y, z), at most one full
     step."""
     delta = (np.asarray(target, dtype=np.float64) - env.mocap)[list(env.task.axes)]
-    return np.clip(gain * delta / STEP, -1.0, 1.0)
+    return np.clip(delta / STEP, -1.0, 1.0)
 
 
 def _push_action(
@@ -348,8 +349,8 @@ class PickAndPlace(SawyerTask):
     goal_low, goal_high = np.array([0.55, 0.08]), np.array([0.65, 0.13])
     max_episode_steps = 50
     camera = {"lookat": (0.0, 0.6, 0.06), "distance": 0.35, "azimuth": 0.0, "elevation": -15.0}
-    #: finger opening (each finger's offset from the middle, metres) with the gripper open and closed
-    open_offset, closed_offset = 0.04, 0.0
+    #: each finger's offset from the middle with the gripper open, metres
+    open_offset = 0.04
 
     def xml(self) -> str:
         fingers = "".join(
@@ -370,9 +371,9 @@ class PickAndPlace(SawyerTask):
         return _scene(fingers, ball + _marker("goal", 0.015, "0.1 0.8 0.1 1"), actuators)
 
     def set_gripper(self, env: "VisualSawyer", effort: float) -> None:
-        """Finger targets from the gripper action: -1 open, 1 closed (on the ball: squeezing it)."""
-        closed = (effort + 1.0) / 2.0 * (self.open_offset - self.closed_offset + 0.01)
-        env.data.ctrl[:] = -min(closed, 0.04)
+        """The fingers' targets from the gripper action: open at -1, closing as it rises, shut from 0.6 on (on the
+        ball, they squeeze it)."""
+        env.data.ctrl[:] = -min(0.025 * (effort + 1.0), self.open_offset)
 
     def layout(self, env: "VisualSawyer", rng: np.random.Generator) -> None:
         env.set_marker("goal", [0.0, *rng.uniform(self.goal_low, self.goal_high)])
@@ -382,11 +383,10 @@ class PickAndPlace(SawyerTask):
 
     def expert_action(self, env: "VisualSawyer") -> np.ndarray:
         ball, hand = env.body_pos("ball"), env.hand
-        gap = np.linalg.norm(ball[1:] - (hand[1:] - [0, 0.0]))
-        if ball[2] < self.ball_radius + 0.01 and gap > 0.012:  # ball on the table, hand not at it: go there open
+        if ball[2] < self.ball_radius + 0.01 and np.linalg.norm(ball[1:] - hand[1:]) > 0.012:  # on the table: go there
             above = [0.0, ball[1], max(hand[2], 0.06)] if abs(hand[1] - ball[1]) > 0.008 else [0.0, ball[1], 0.02]
             return np.array([*_towards(env, above), -1.0])
-        if env.grip_steps < 4:  # close on it
+        if env.grip_steps < 4:  # close on it for 4 steps
             env.grip_steps += 1
             return np.array([0.0, 0.0, 1.0])
         return np.array([*_towards(env, env.marker("goal") + (hand - ball)), 1.0])

@@ -125,6 +125,14 @@ class SawyerTask:
         raise NotImplementedError
 
 
+def _goal_away_from(rng: np.random.Generator, low: Any, high: Any, start: Any, min_distance: float) -> np.ndarray:
+    """A goal (x, y) uniform in [low, high], drawn again until it lies at least ``min_distance`` from ``start``."""
+    while True:
+        goal = rng.uniform(low, high)
+        if np.linalg.norm(goal - np.asarray(start)) >= min_distance:
+            return goal
+
+
 def _towards(env: "VisualSawyer", target: Any) -> np.ndarray:
     """The action along the task's axes that moves the hand's mocap point to ``target`` (x, y, z), at most one full
     step."""
@@ -188,10 +196,7 @@ class Reacher(SawyerTask):
     min_goal_distance = 0.1
 
     def layout(self, env: "VisualSawyer", rng: np.random.Generator) -> None:
-        while True:
-            goal = rng.uniform(self.hand_low[:2], self.hand_high[:2])
-            if np.linalg.norm(goal - self.hand_start[:2]) >= self.min_goal_distance:
-                break
+        goal = _goal_away_from(rng, self.hand_low[:2], self.hand_high[:2], self.hand_start[:2], self.min_goal_distance)
         env.set_marker("goal", [*goal, 0.055])
 
     def distance(self, env: "VisualSawyer") -> float:
@@ -215,10 +220,7 @@ class Pusher(SawyerTask):
         return _scene(self.hand_xml, objects + _marker("goal", 0.02, "0.1 0.8 0.1 1"))
 
     def layout(self, env: "VisualSawyer", rng: np.random.Generator) -> None:
-        while True:
-            goal = rng.uniform(self.goal_low, self.goal_high)
-            if np.linalg.norm(goal - self.puck_start) >= self.min_goal_distance:
-                break
+        goal = _goal_away_from(rng, self.goal_low, self.goal_high, self.puck_start, self.min_goal_distance)
         env.set_marker("goal", [*goal, 0.02])
 
     def distance(self, env: "VisualSawyer") -> float:
@@ -275,7 +277,7 @@ class DoorHook(SawyerTask):
     """Pull a door open to the goal angle (a green dot where the handle then is) with a hook under the hand.
 
     The door (hinge at x = 0.1, y = 0.66, vertical axis; 0-60 degrees) swings toward the hand; its handle is an L, a bar
-    2.5 cm in front of the door joined to it at its foot, so the hook goes in from above and pulls.
+    3 cm in front of the door joined to it at its foot, so the hook goes in from above and pulls.
     """
 
     axes = (0, 1, 2)
